@@ -1,0 +1,25 @@
+"""Approximation of responses on orthonormal bases: coefficients, models, pole studies."""
+
+from __future__ import annotations
+
+from .model import KautzModel
+from .projection import (
+    Approximation,
+    approximate,
+    coefficients_from_system,
+    impulse_to_step,
+    ise_from_system,
+    project,
+    step_to_impulse,
+)
+
+__all__ = [
+    "Approximation",
+    "KautzModel",
+    "approximate",
+    "coefficients_from_system",
+    "impulse_to_step",
+    "ise_from_system",
+    "project",
+    "step_to_impulse",
+]
