@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["quadrature_weights"]
+__all__ = ["least_squares_weights", "quadrature_weights"]
 
 
 def _trapezoid(t: NDArray) -> NDArray[np.float64]:
@@ -67,3 +67,14 @@ def quadrature_weights(t: NDArray, rule: str = "simpson") -> NDArray[np.float64]
     if rule == "trapezoid":
         return _trapezoid(t)
     raise ValueError(f"rule must be 'simpson' or 'trapezoid', got {rule!r}")
+
+
+def least_squares_weights(t: NDArray) -> NDArray[np.float64]:
+    """Positive quadrature weights for weighted least squares on the grid ``t``.
+
+    Simpson's weights where they are all positive (always on uniform grids),
+    else the trapezoid rule's, so the weighted residual norm is a quadrature of
+    the squared error of order 4 where possible and 2 otherwise.
+    """
+    w = _simpson(t)
+    return w if np.all(w > 0) else _trapezoid(t)

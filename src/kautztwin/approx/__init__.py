@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from .model import KautzModel
+from .poles import PoleOptimization, optimize_poles, pole_sensitivity
 from .projection import (
     Approximation,
     approximate,
@@ -16,10 +17,13 @@ from .projection import (
 __all__ = [
     "Approximation",
     "KautzModel",
+    "PoleOptimization",
     "approximate",
     "coefficients_from_system",
     "impulse_to_step",
     "ise_from_system",
+    "optimize_poles",
+    "pole_sensitivity",
     "project",
     "step_to_impulse",
 ]

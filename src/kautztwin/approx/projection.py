@@ -12,7 +12,7 @@ import scipy.linalg
 import scipy.signal
 from numpy.typing import ArrayLike, NDArray
 
-from .._quadrature import quadrature_weights
+from .._quadrature import least_squares_weights, quadrature_weights
 from .._validation import check_records, check_time
 from ..basis import KautzBasis
 from ..basis._propagate import uniform_step
@@ -64,7 +64,7 @@ def project(
 
     .. math:: \int_{t_0}^{T} h K\,dt = y(T)K(T) - y(t_0)K(t_0) - A\int_{t_0}^{T} y K\,dt .
 
-    ``method='lstsq'`` minimises the (trapezoid-weighted) squared error between
+    ``method='lstsq'`` minimises the squared error (weighted by Simpson's rule) between
     the record and the model's impulse or step response on the grid; it is
     the better choice for short records, where the functions have not decayed.
     Discrete bases (``basis.dt > 0``) use plain sums, which are exact in
@@ -125,7 +125,7 @@ def project(
     if basis.is_discrete:
         return _project_discrete(basis, t, h, kind, method)
     if method == "lstsq":
-        return _weighted_lstsq(_design(basis, t, kind), quadrature_weights(t, "trapezoid"), h)
+        return _weighted_lstsq(_design(basis, t, kind), least_squares_weights(t), h)
     K = basis.evaluate(t)
     w = quadrature_weights(t, rule)
     if kind == "impulse":
