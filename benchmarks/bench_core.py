@@ -61,22 +61,28 @@ def _bases() -> dict[str, kt.KautzBasis]:
     }
 
 
-def _timeit(fn: Callable[[], Any], repeats: int, min_time: float) -> list[float]:
-    """Seconds per call of ``fn``: ``repeats`` samples, each a loop of calls lasting ``min_time``.
+def _timeit(
+    fns: dict[str, Callable[[], Any]], repeats: int, min_time: float
+) -> dict[str, list[float]]:
+    """Seconds per call of each function: ``repeats`` samples each, interleaved.
 
-    One warm-up call first; the loop length is calibrated so that short calls
-    are not dominated by timer resolution or by a single scheduler hiccup.
+    Every function is called once to warm up and to calibrate how many calls
+    make one sample last about ``min_time`` (so short calls are not dominated by
+    the timer's resolution).  The samples of the functions alternate, so that a
+    burst of load on a shared machine hits the compared functions alike.
     """
-    start = time.perf_counter()
-    fn()
-    once = max(time.perf_counter() - start, 1e-9)
-    number = max(1, int(min_time / once))
-    times = []
-    for _ in range(repeats):
+    numbers = {}
+    for name, fn in fns.items():
         start = time.perf_counter()
-        for _ in range(number):
-            fn()
-        times.append((time.perf_counter() - start) / number)
+        fn()
+        numbers[name] = max(1, int(min_time / max(time.perf_counter() - start, 1e-9)))
+    times: dict[str, list[float]] = {name: [] for name in fns}
+    for _ in range(repeats):
+        for name, fn in fns.items():
+            start = time.perf_counter()
+            for _ in range(numbers[name]):
+                fn()
+            times[name].append((time.perf_counter() - start) / numbers[name])
     return times
 
 
@@ -95,10 +101,10 @@ def _naive_projection(K: np.ndarray, t: np.ndarray, H: np.ndarray) -> np.ndarray
     return c
 
 
-def _git_commit() -> str | None:
+def _git(*args: str) -> str | None:
     try:
         out = subprocess.run(
-            ["git", "rev-parse", "HEAD"],
+            ["git", *args],
             cwd=Path(__file__).resolve().parent,
             capture_output=True,
             text=True,
@@ -107,7 +113,7 @@ def _git_commit() -> str | None:
         )
     except (OSError, subprocess.SubprocessError):
         return None
-    return out.stdout.strip() or None
+    return out.stdout.strip()
 
 
 def _cpu_model() -> str:
@@ -126,7 +132,7 @@ def _blas() -> str | None:
         config = np.show_config(mode="dicts")
         blas = config["Build Dependencies"]["blas"]
         return f"{blas.get('name')} {blas.get('version', '')}".strip()
-    except Exception:  # noqa: BLE001 - purely informative, any numpy layout will do
+    except Exception:  # purely informative: any failure just leaves it out
         return None
 
 
@@ -143,12 +149,14 @@ def machine_info() -> dict[str, Any]:
         "scipy": scipy.__version__,
         "kautztwin": kt.__version__,
         "blas": _blas(),
+        "load_average_at_start": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
         "thread_env": {
             k: os.environ[k]
             for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
             if k in os.environ
         },
-        "git_commit": _git_commit(),
+        "git_commit": _git("rev-parse", "HEAD") or None,
+        "git_dirty": None if (status := _git("status", "--porcelain")) is None else bool(status),
     }
 
 
@@ -166,17 +174,25 @@ def bench_case(
     n = basis.n_functions
 
     # basis evaluation: kautztwin (matrix-exponential recursion) vs scipy.signal.impulse
-    t_eval = _timeit(lambda: basis.evaluate(t), repeats, min_time)
-    t_scipy = _timeit(lambda: _scipy_functions(basis, t), repeats, min_time)
+    timed = _timeit(
+        {"kt": lambda: basis.evaluate(t), "scipy": lambda: _scipy_functions(basis, t)},
+        repeats,
+        min_time,
+    )
+    t_eval, t_scipy = timed["kt"], timed["scipy"]
     K = basis.evaluate(t)
     K_ref = _scipy_functions(basis, t)
     max_diff = float(np.max(np.abs(K - K_ref)))
     eval_kt, eval_sp = statistics.median(t_eval), statistics.median(t_scipy)
 
-    # projection of all records at once vs the naive loop on a subset
-    t_proj = _timeit(lambda: kt.project(basis, t, H), repeats, min_time)
+    # projection of all records at once vs the naive loop on a subset of them
     sub = H[:naive_records]
-    t_naive = _timeit(lambda: _naive_projection(K, t, sub), max(1, repeats // 3), 0.0)
+    timed = _timeit(
+        {"kt": lambda: kt.project(basis, t, H), "naive": lambda: _naive_projection(K, t, sub)},
+        repeats,
+        min_time,
+    )
+    t_proj, t_naive = timed["kt"], timed["naive"]
     coef_diff = float(np.max(np.abs(_naive_projection(K, t, sub) - kt.project(basis, t, sub))))
     proj = statistics.median(t_proj)
     naive_per_record = statistics.median(t_naive) / naive_records
@@ -193,6 +209,7 @@ def bench_case(
             "scipy_impulse_s": eval_sp,
             "scipy_impulse_s_min": min(t_scipy),
             "speedup": eval_sp / eval_kt,
+            "speedup_min": min(t_scipy) / min(t_eval),
             "max_abs_diff_vs_scipy": max_diff,
             "max_abs_value": float(np.max(np.abs(K))),
             "kautztwin_s_all": t_eval,
@@ -207,6 +224,7 @@ def bench_case(
             "naive_s_per_record": naive_per_record,
             "naive_s_estimated": naive_full,
             "speedup": naive_full / proj,
+            "speedup_min": min(t_naive) / naive_records * H.shape[0] / min(t_proj),
             "max_abs_coef_diff_vs_naive": coef_diff,
             "kautztwin_s_all": t_proj,
             "naive_s_all": t_naive,
@@ -252,15 +270,16 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="fewer repeats (smoke test, < 1 min)")
     parser.add_argument(
-        "--out", type=Path, default=DEFAULT_OUT, help="JSON output (default: benchmarks/results/core.json)"
+        "--out", type=Path, default=DEFAULT_OUT, help="JSON file (default: results/core.json here)"
     )
     args = parser.parse_args(argv)
 
-    repeats, min_time, naive_records = (5, 0.02, 50) if args.quick else (9, 0.25, 200)
+    repeats, min_time, naive_records = (5, 0.02, 50) if args.quick else (15, 0.1, 200)
     rng = np.random.default_rng(0)
     t = np.linspace(0.0, T_END, N_SAMPLES)
     H = _records(t, N_RECORDS, rng)
 
+    machine = machine_info()
     started = time.perf_counter()
     cases = [
         bench_case(
@@ -280,12 +299,15 @@ def main(argv: list[str] | None = None) -> int:
             "repeats": repeats,
             "min_time_per_repeat_s": min_time,
             "naive_records": naive_records,
-            "timer": "time.perf_counter; per-call median over repeats after one warm-up call",
+            "timer": "time.perf_counter; median per call over interleaved repeats, after a warm-up",
         },
-        "machine": machine_info(),
+        "machine": machine,
         "cases": cases,
         "elapsed_s": time.perf_counter() - started,
     }
+    result["machine"]["load_average_at_end"] = (
+        list(os.getloadavg()) if hasattr(os, "getloadavg") else None
+    )
     _print_table(cases)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2) + "\n", encoding="utf-8")

@@ -22,19 +22,25 @@ def _sorted(p):
 @pytest.mark.parametrize("index", [0, 1, 2, 3], ids=["real-1", "real-3", "pair-up", "pair-down"])
 def test_sensitivity_system_matches_ise_from_system(index):
     p0 = TRUE[index]
-    cands = (np.array([0.6, 0.9, 1.4]) * p0.real + 1j * abs(p0.imag) * np.array([1.3, 0.8, 1.1])
-             if p0.imag else np.array([0.6, 0.9, 1.4]) * p0.real)
+    cands = (
+        np.array([0.6, 0.9, 1.4]) * p0.real + 1j * abs(p0.imag) * np.array([1.3, 0.8, 1.1])
+        if p0.imag
+        else np.array([0.6, 0.9, 1.4]) * p0.real
+    )
     got = kt.pole_sensitivity(TRUE, index, cands, system=reference_system())
-    for value, g in zip(cands, got):
+    for value, g in zip(cands, got, strict=True):
         p = TRUE.copy()
         if p0.imag:
             mate = index + 1 if p0.imag > 0 else index - 1
-            p[index], p[mate] = value if p0.imag > 0 else np.conj(value), np.conj(value) if p0.imag > 0 else value
+            upper, lower = (index, mate) if p0.imag > 0 else (mate, index)
+            p[upper], p[lower] = value, np.conj(value)
         else:
             p[index] = value
-        # batched Kronecker solve vs scipy's Bartels-Stewart: both at rounding level of ||h||^2 = 0.14
-        np.testing.assert_allclose(g, kt.ise_from_system(kt.KautzBasis(p), reference_system()),
-                                   rtol=1e-9, atol=1e-15)
+        # batched Kronecker solve vs scipy's Bartels-Stewart: both at the rounding level of
+        # ||h||^2 = 0.14
+        np.testing.assert_allclose(
+            g, kt.ise_from_system(kt.KautzBasis(p), reference_system()), rtol=1e-9, atol=1e-15
+        )
 
 
 def test_sensitivity_is_zero_at_true_poles_and_positive_elsewhere():

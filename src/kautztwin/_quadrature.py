@@ -9,6 +9,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from .exceptions import DataError
+
 __all__ = ["least_squares_weights", "quadrature_weights"]
 
 
@@ -66,7 +68,9 @@ def quadrature_weights(t: NDArray, rule: str = "simpson") -> NDArray[np.float64]
         return _simpson(t)
     if rule == "trapezoid":
         return _trapezoid(t)
-    raise ValueError(f"rule must be 'simpson' or 'trapezoid', got {rule!r}")
+    # DataError (a ValueError) so that project(rule=...) and ise(rule=...) report it
+    # like every other bad option, as a KautzTwinError
+    raise DataError(f"rule must be 'simpson' or 'trapezoid', got {rule!r}")
 
 
 def least_squares_weights(t: NDArray) -> NDArray[np.float64]:

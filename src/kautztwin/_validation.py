@@ -16,7 +16,7 @@ def check_finite(x: NDArray, name: str) -> None:
     if bad.any():
         idx = tuple(int(i) for i in np.argwhere(bad)[0])
         where = idx[0] if len(idx) == 1 else idx
-        raise DataError(f"{name} contains a non-finite value ({x[idx]!r}) at index {where}")
+        raise DataError(f"{name} contains a non-finite value ({float(x[idx])}) at index {where}")
 
 
 def check_time(t: ArrayLike, name: str = "t", *, min_samples: int = 2) -> NDArray[np.float64]:
@@ -45,9 +45,7 @@ def check_records(y: ArrayLike, n_samples: int, name: str = "h") -> NDArray[np.f
             f"{name} must be 1-D (one record) or 2-D (n_records, n_samples), got shape {y.shape}"
         )
     if y.shape[-1] != n_samples:
-        raise DimensionError(
-            f"{name} has {y.shape[-1]} samples per record but t has {n_samples}"
-        )
+        raise DimensionError(f"{name} has {y.shape[-1]} samples per record but t has {n_samples}")
     check_finite(y, name)
     return y
 

@@ -48,7 +48,9 @@ def as_state_space(system: Any) -> SISOStateSpace:
         if num.ndim != 1 or den.ndim != 1:
             raise DimensionError("num and den must be 1-D coefficient lists (SISO systems only)")
         if num.size > den.size:
-            raise DataError(f"the system is improper: deg num = {num.size - 1} > deg den = {den.size - 1}")
+            raise DataError(
+                f"the system is improper: deg num = {num.size - 1} > deg den = {den.size - 1}"
+            )
         A, B, C, D = scipy.signal.tf2ss(num, den)
     elif isinstance(system, (tuple, list)) and len(system) in (4, 5):
         if len(system) == 5:

@@ -68,7 +68,8 @@ class KautzModel:
         c = np.array(self.coefficients, dtype=float, copy=True)
         if c.shape != (self.basis.n_functions,):
             raise DimensionError(
-                f"coefficients has shape {c.shape} but the basis has {self.basis.n_functions} functions"
+                f"coefficients has shape {c.shape} but the basis has "
+                f"{self.basis.n_functions} functions"
             )
         if not np.all(np.isfinite(c)):
             raise DataError("coefficients contain NaN or inf")
@@ -142,7 +143,9 @@ class KautzModel:
         A, B, C, D = self.state_space()
         s = 1j * w if self.dt == 0 else np.exp(1j * w * self.dt)
         eye = np.eye(A.shape[0])
-        X = np.linalg.solve(s[:, None, None] * eye[None] - A[None], np.broadcast_to(B, (w.size,) + B.shape))
+        X = np.linalg.solve(
+            s[:, None, None] * eye[None] - A[None], np.broadcast_to(B, (w.size,) + B.shape)
+        )
         return (C @ X)[:, 0, 0] + D[0, 0]
 
     # ------------------------------------------------------------------ conversions
@@ -178,7 +181,7 @@ class KautzModel:
             self.basis.block_kinds, self.basis._params, self.dt
         )
         num = np.zeros(1)
-        for ci, n_i, tail in zip(self.coefficients, nums, tails):
+        for ci, n_i, tail in zip(self.coefficients, nums, tails, strict=True):
             num = np.polyadd(num, ci * np.polymul(n_i, tail))
         den = np.polymul(dens[-1], tails[-1])
         if self.basis.delayed:
@@ -186,7 +189,7 @@ class KautzModel:
         # leading coefficients that are rounding noise (a cancelled highest power) are dropped
         scale = np.max(np.abs(num)) if num.size else 0.0
         keep = np.flatnonzero(np.abs(num) > 1e-13 * scale)
-        num = num[keep[0]:] if keep.size else np.zeros(1)
+        num = num[keep[0] :] if keep.size else np.zeros(1)
         return num, den
 
     def to_scipy(self) -> scipy.signal.lti | scipy.signal.dlti:

@@ -71,7 +71,9 @@ def _ise_system_batch(kinds: tuple[str, ...], params: NDArray, system: Any) -> N
         raise DataError("pole_sensitivity takes continuous-time systems only")
     import scipy.linalg
 
-    energy = float(ss.C @ scipy.linalg.solve_continuous_lyapunov(ss.A, -np.outer(ss.B, ss.B)) @ ss.C)
+    energy = float(
+        ss.C @ scipy.linalg.solve_continuous_lyapunov(ss.A, -np.outer(ss.B, ss.B)) @ ss.C
+    )
     n_h = ss.A.shape[0]
     out = np.empty(params.shape[0])
     for start in range(0, params.shape[0], _CHUNK):
@@ -351,7 +353,9 @@ def _prony_start(t: NDArray, H: NDArray, n: int, kind: str) -> tuple[tuple[str, 
     return tuple(kinds), np.asarray(params)
 
 
-def _candidate_starts(t: NDArray, H: NDArray, n: int, kind: str) -> list[tuple[tuple[str, ...], NDArray]]:
+def _candidate_starts(
+    t: NDArray, H: NDArray, n: int, kind: str
+) -> list[tuple[tuple[str, ...], NDArray]]:
     """A few starting structures: Prony's, all-real spread, and complex pairs."""
     sig = np.abs(np.mean(H, axis=0))
     if kind == "step":
@@ -464,8 +468,15 @@ def optimize_poles(
         lo, hi = _bounds(kinds, t)
         x0 = np.clip(_to_x(kinds, params), lo + 1e-9 * (hi - lo), hi - 1e-9 * (hi - lo))
         sol = scipy.optimize.least_squares(
-            prob.residual, x0, bounds=(lo, hi), method="trf", x_scale="jac",
-            ftol=tol, xtol=tol, gtol=tol, max_nfev=max_iter * (x0.size + 1),
+            prob.residual,
+            x0,
+            bounds=(lo, hi),
+            method="trf",
+            x_scale="jac",
+            ftol=tol,
+            xtol=tol,
+            gtol=tol,
+            max_nfev=max_iter * (x0.size + 1),
         )
         total_eval += prob.n_eval
         if best is None or sol.cost < best[0].cost:

@@ -15,7 +15,7 @@ from numpy.typing import ArrayLike, NDArray
 from .._quadrature import least_squares_weights, quadrature_weights
 from .._validation import check_records, check_time
 from ..basis import KautzBasis
-from ..basis._propagate import uniform_step
+from ..basis._propagate import sample_indices, uniform_step
 from ..exceptions import DataError, DimensionError
 from ..metrics import fit_percent, ise, mse
 from ._system import as_state_space
@@ -141,9 +141,14 @@ def _project_discrete(
     F = basis.evaluate(t)  # also checks that t lies on the grid k*dt
     if method == "lstsq":
         return _weighted_lstsq(_design(basis, t, kind), np.ones(t.size), h)
+    # plain sums are the l2 inner products only over the whole sequence from k = 0;
+    # a record that starts later or skips samples would give wrong coefficients silently
+    if not np.array_equal(sample_indices(t, basis.dt), np.arange(t.size)):
+        raise DataError(
+            f"a discrete {kind} record must hold consecutive samples k = 0, 1, 2, ... "
+            "(t = k * dt); use method='lstsq' for other grids"
+        )
     if kind == "step":
-        if uniform_step(t) is None and t.size > 2 or abs(t[0]) > 0:
-            raise DataError("a discrete step record must start at t = 0 on the grid k * dt")
         h = np.diff(h, axis=-1, prepend=0.0)
     return h @ F.T
 
@@ -275,7 +280,8 @@ def coefficients_from_system(basis: KautzBasis, system: Any) -> NDArray[np.float
     >>> import kautztwin as kt
     >>> w = np.sqrt(15) / 2
     >>> basis = kt.KautzBasis([-1, -3, -0.5 + 1j * w, -0.5 - 1j * w])
-    >>> c = kt.coefficients_from_system(basis, ([6.0], np.poly([-1, -3, -0.5 + 1j * w, -0.5 - 1j * w]).real))
+    >>> den = np.poly([-1, -3, -0.5 + 1j * w, -0.5 - 1j * w]).real
+    >>> c = kt.coefficients_from_system(basis, ([6.0], den))
     >>> np.round(c, 8)
     array([ 0.1767767 , -0.22963966,  0.22097087,  0.08838835])
     """
@@ -407,4 +413,6 @@ def step_to_impulse(
         raise DataError(f"window = {window} is longer than the record ({t.size} samples)")
     if polyorder >= window:
         raise DataError(f"polyorder = {polyorder} must be smaller than window = {window}")
-    return scipy.signal.savgol_filter(y, window, polyorder, deriv=1, delta=h, axis=-1, mode="interp")
+    return scipy.signal.savgol_filter(
+        y, window, polyorder, deriv=1, delta=h, axis=-1, mode="interp"
+    )

@@ -75,7 +75,8 @@ def parse_poles(poles: ArrayLike, dt: float) -> tuple[tuple[str, ...], NDArray[n
             params.append(-pi.real if dt == 0 else pi.real)
             continue
         partner = [
-            j for j in range(i + 1, p.size)
+            j
+            for j in range(i + 1, p.size)
             if not used[j] and abs(p[j] - np.conj(pi)) <= _PAIR_TOL * scale
         ]
         if not partner:

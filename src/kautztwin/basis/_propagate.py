@@ -80,7 +80,9 @@ def sample_indices(t: NDArray, dt: float, *, name: str = "t") -> NDArray[np.intp
     bad = np.abs(k - kr) > 1e-6 * np.maximum(1.0, np.abs(k))
     if bad.any():
         i = int(np.argmax(bad))
-        raise DataError(f"{name}[{i}] = {t[i]:g} is not a multiple of the sampling period dt = {dt:g}")
+        raise DataError(
+            f"{name}[{i}] = {t[i]:g} is not a multiple of the sampling period dt = {dt:g}"
+        )
     if (kr < 0).any():
         i = int(np.argmax(kr < 0))
         raise DataError(f"{name}[{i}] = {t[i]:g} is negative; discrete bases start at t = 0")

@@ -144,7 +144,9 @@ class KautzBasis:
         return obj
 
     def __setattr__(self, name: str, value: Any) -> None:
-        raise AttributeError(f"{type(self).__name__} is immutable; use with_poles() for a new basis")
+        raise AttributeError(
+            f"{type(self).__name__} is immutable; use with_poles() for a new basis"
+        )
 
     # ------------------------------------------------------------------ properties
     @property
@@ -311,7 +313,9 @@ class KautzBasis:
         nums, dens, _ = transfer_polynomials(self._kinds, self._params, self._dt)
         if self._delayed:
             nums = [n[:-1] for n in nums]  # every undelayed numerator ends in a factor z
-        return [(np.asarray(n, float), np.asarray(d, float)) for n, d in zip(nums, dens)]
+        return [
+            (np.asarray(n, float), np.asarray(d, float)) for n, d in zip(nums, dens, strict=True)
+        ]
 
     def denominator(self) -> NDArray[np.float64]:
         """Common denominator :math:`d_\\pi` of all basis functions (highest power first)."""
@@ -347,7 +351,7 @@ class KautzBasis:
         return KautzBasis(poles, dt=self._dt, delayed=self._delayed)
 
     def allclose(self, other: KautzBasis, rtol: float = 1e-10, atol: float = 0.0) -> bool:
-        """Whether ``other`` has the same time domain, block structure and (nearly) the same poles."""
+        """Whether ``other`` has the same time domain, block structure and nearly the same poles."""
         return (
             isinstance(other, KautzBasis)
             and self._dt == other._dt
@@ -375,13 +379,17 @@ class KautzBasis:
         poles = ", ".join(
             f"{p.real:.6g}" if p.imag == 0 else f"{p.real:.6g}{p.imag:+.6g}j" for p in self._poles
         )
-        extra = "" if self._dt == 0 else f", dt={self._dt:g}" + (", delayed=True" if self._delayed else "")
+        extra = (
+            ""
+            if self._dt == 0
+            else f", dt={self._dt:g}" + (", delayed=True" if self._delayed else "")
+        )
         return f"{type(self).__name__}([{poles}]{extra})"
 
     def _block_slices(self) -> list[slice]:
         """Row slices of the functions of each block."""
         starts = np.concatenate([[0], np.cumsum(block_sizes(self._kinds))])
-        return [slice(int(a), int(b)) for a, b in zip(starts[:-1], starts[1:])]
+        return [slice(int(a), int(b)) for a, b in zip(starts[:-1], starts[1:], strict=True)]
 
     @property
     def n_pairs(self) -> int:

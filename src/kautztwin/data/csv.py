@@ -20,7 +20,9 @@ from ..exceptions import DataError
 __all__ = ["read_columns"]
 
 
-def read_columns(path: str | os.PathLike[str], columns: list[str]) -> dict[str, NDArray[np.float64]]:
+def read_columns(
+    path: str | os.PathLike[str], columns: list[str]
+) -> dict[str, NDArray[np.float64]]:
     """Read named numeric columns from a text file with a header row.
 
     The first non-blank line names the columns (a leading ``#``, as written by
@@ -100,7 +102,8 @@ def read_columns(path: str | os.PathLike[str], columns: list[str]) -> dict[str, 
             fields = fields[1:]  # an unnamed leading index column
         elif len(fields) > n_header + 1:
             raise DataError(
-                f"{name}, line {lineno}: {len(fields)} fields but the header names {n_header} columns"
+                f"{name}, line {lineno}: {len(fields)} fields but the header names "
+                f"{n_header} columns"
             )
         for col, j in index.items():
             text = fields[j].strip() if j < len(fields) else ""
@@ -156,7 +159,9 @@ def _column_index(header: list[str], columns: list[str], name: str) -> dict[str,
     return index
 
 
-def _parse_value(text: str, col: str, row: int, lineno: int, name: str, delimiter: str | None) -> float:
+def _parse_value(
+    text: str, col: str, row: int, lineno: int, name: str, delimiter: str | None
+) -> float:
     where = f"{name}: column {col!r}, row {row} (line {lineno})"
     if not text:
         raise DataError(f"{where} is empty; every row needs a value")
