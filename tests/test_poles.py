@@ -191,3 +191,12 @@ def test_optimize_rejects_bad_data():
         kt.optimize_poles(t, h, 4)
     with pytest.raises(DataError, match="kind"):
         kt.optimize_poles(t, np.nan_to_num(h), 4, kind="ramp")
+
+
+def test_optimize_warns_when_a_pole_sticks_at_the_slowest_rate():
+    # a first-order decay plus a constant offset cannot be separated from a pole at rate ~0:
+    # the optimiser parks the second pole at the lower bound, and must say so
+    t = np.linspace(0, 10, 500)
+    h = np.exp(-t) + 0.2
+    with pytest.warns(kt.exceptions.ConvergenceWarning, match="slowest allowed rate"):
+        kt.optimize_poles(t, h, [-1.0, -0.5])

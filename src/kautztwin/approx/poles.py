@@ -15,6 +15,7 @@ approximation error depends on them.  Here both are automatic and vectorised:
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from typing import Any
 
@@ -27,7 +28,7 @@ from .._validation import check_records, check_time
 from ..basis import KautzBasis
 from ..basis._blocks import PAIR, REAL, continuous_matrices, parse_poles
 from ..basis._propagate import continuous_functions, uniform_step
-from ..exceptions import DataError, PoleError
+from ..exceptions import ConvergenceWarning, DataError, PoleError
 from ..metrics import fit_percent, ise
 from ._system import as_state_space
 from .model import KautzModel
@@ -329,13 +330,16 @@ def _prony_start(t: NDArray, H: NDArray, n: int, kind: str) -> tuple[tuple[str, 
         H = np.array([np.interp(tu, t, row) for row in H])
         step = float(tu[1] - tu[0])
     sig = np.mean(H, axis=0)
-    if kind == "step":
-        sig = np.diff(sig)
     m = sig.size
-    if m <= 2 * n:
+    if m <= 2 * n + 1:
         raise DataError(f"{t.size} samples are too few to place {n} poles")
     rows = np.array([sig[k - n : k][::-1] for k in range(n, m)])
-    a, *_ = np.linalg.lstsq(rows, sig[n:], rcond=None)
+    if kind == "step":
+        # a step response is a constant plus the modes: linear prediction with an offset term
+        # (differencing the record instead would amplify its noise)
+        rows = np.hstack([rows, np.ones((rows.shape[0], 1))])
+    coef, *_ = np.linalg.lstsq(rows, sig[n:], rcond=None)
+    a = coef[:n]
     z = np.roots(np.concatenate([[1.0], -a]))
     kinds: list[str] = []
     params: list[float] = []
@@ -482,6 +486,15 @@ def optimize_poles(
         if best is None or sol.cost < best[0].cost:
             best = (sol, prob, kinds, params)
     sol, prob, kinds, params = best
+    lo, hi = _bounds(kinds, t)
+    at_bound = np.isclose(sol.x, lo, rtol=0, atol=1e-6) & (lo != 0)
+    if np.any(at_bound):
+        warnings.warn(
+            "a basis pole ended at the slowest allowed rate (0.01 / record length): the record "
+            "is too short to resolve it and it mimics an offset or drift; try fewer poles",
+            ConvergenceWarning,
+            stacklevel=2,
+        )
     c, _ = prob.solve(sol.x)
     basis = KautzBasis._from_blocks(kinds, prob.params(sol.x))
     initial = KautzBasis._from_blocks(kinds, np.clip(params, np.exp(_bounds(kinds, t)[0][0]), None))

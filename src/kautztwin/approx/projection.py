@@ -128,9 +128,10 @@ def project(
         return _weighted_lstsq(_design(basis, t, kind), least_squares_weights(t), h)
     K = basis.evaluate(t)
     w = quadrature_weights(t, rule)
+    Kw = (K * w).T  # (n, N): weights folded into the small factor, not the records
     if kind == "impulse":
-        return (h * w) @ K.T
-    integral = (h * w) @ K.T  # int y K dt, per record
+        return h @ Kw
+    integral = h @ Kw  # int y K dt, per record
     y_end, y_start = h[..., -1:], h[..., :1]
     return y_end * K[:, -1] - y_start * K[:, 0] - integral @ basis.A.T
 
