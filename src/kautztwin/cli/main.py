@@ -87,6 +87,13 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _command_names(parser: argparse.ArgumentParser) -> list[str]:
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            return list(action.choices)
+    return []  # pragma: no cover
+
+
 def _one_line(exc: BaseException) -> str:
     if isinstance(exc, OSError) and exc.strerror:
         text = f"{exc.strerror}: {exc.filename}" if exc.filename else exc.strerror
@@ -138,7 +145,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return _fail(exc, 2, debug=False)
     if args.command is None:
         sys.stderr.write(
-            f"{PROG}: error: missing command; choose one of basis, approx, sensitivity "
+            f"{PROG}: error: missing command; choose one of {', '.join(_command_names(parser))} "
             f"(see '{PROG} --help')\n"
         )
         return 2
