@@ -16,7 +16,7 @@ from collections.abc import Sequence
 
 from .. import __version__
 from ..exceptions import KautzTwinError
-from . import _approx, _basis, _sensitivity
+from . import _approx, _basis, _sensitivity, _simulate, _train
 from ._common import CLIError, join_option_values
 
 __all__ = ["build_parser", "main"]
@@ -84,6 +84,8 @@ def build_parser() -> argparse.ArgumentParser:
     _basis.register(sub, common)
     _approx.register(sub, common)
     _sensitivity.register(sub, common)
+    _simulate.register(sub, common)
+    _train.register(sub, common)
     return parser
 
 

@@ -48,15 +48,32 @@ from ..exceptions import DataError
 __all__ = ["TrainSpec"]
 
 _SCHEMA: dict[str, dict[str, type | tuple[type, ...]]] = {
-    "system": {"model": str, "num": list, "den": list, "zeros": list, "poles": list,
-               "gain": (int, float), "name": str},
+    "system": {
+        "model": str,
+        "num": list,
+        "den": list,
+        "zeros": list,
+        "poles": list,
+        "gain": (int, float),
+        "name": str,
+    },
     "uncertainty": {},  # parameter names, checked against the system
-    "noise": {"level": (int, float), "kind": str, "color_pole": (int, float),
-              "quantization": (int, float)},
+    "noise": {
+        "level": (int, float),
+        "kind": str,
+        "color_pole": (int, float),
+        "quantization": (int, float),
+    },
     "grid": {"t_end": (int, float), "n_samples": int, "response": str},
     "basis": {"poles": (str, list)},
-    "training": {"preset": str, "n_records": int, "random_state": int,
-                 "per_coefficient": bool, "max_epochs": int, "n_test": int},
+    "training": {
+        "preset": str,
+        "n_records": int,
+        "random_state": int,
+        "per_coefficient": bool,
+        "max_epochs": int,
+        "n_test": int,
+    },
 }
 
 
@@ -70,8 +87,10 @@ def _parse_complex(value: Any, key: str) -> complex:
             return complex(value.replace(" ", "").replace("i", "j"))
         except ValueError:
             pass
-    if isinstance(value, list) and len(value) == 2 and all(
-        isinstance(v, (int, float)) and not isinstance(v, bool) for v in value
+    if (
+        isinstance(value, list)
+        and len(value) == 2
+        and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
     ):
         return complex(value[0], value[1])
     raise DataError(f"{key}: cannot read {value!r} as a number ('-0.5+1.9j' or [re, im])")
