@@ -1,0 +1,306 @@
+"""Benchmark: Laguerre/Kautz-parameterised MPC against full-horizon MPC on the same model.
+
+For two plants — the reference system ``6/((s+1)(s+3)(s^2+s+4))`` sampled at
+0.1 s and a three-real-pole "hydraulic-like" plant ``1/((s+1)(s+2)(s+8))``
+sampled at 0.05 s (both discretised with a zero-order hold) — it runs the same
+closed-loop set-point schedule with
+
+* the full-horizon MPC (one increment per step, ``N_p`` decision variables),
+* Laguerre MPC with ``N <= 8`` functions (several poles ``a``) and one Kautz
+  basis with a complex pair,
+
+all with the same horizon, cost (``Q = 1`` on the output, ``r`` on the
+increments), and the same input, rate and output limits imposed at every step of
+the horizon, solved by DAQP through :class:`kautztwin.mpc.MPCProblem`.  It
+records the number of decision variables and constraint rows, the wall time of
+each ``MPCProblem.solve`` call (median, p99), the QP time DAQP reports for the
+same calls (warm-started, and again with cold starts), the closed-loop cost
+relative to the full-horizon MPC and the number of constraint violations.
+
+The Kautz configuration used for the acceptance check (Laguerre ``a = 0.8``,
+``N = 8``) is fixed in this file, not chosen from the results; the other rows show
+how much the choice matters.
+
+Usage::
+
+    python benchmarks/bench_mpc.py [--quick] [--out benchmarks/results/mpc.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import gc
+import json
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import scipy.signal
+
+import kautztwin as kt
+from kautztwin.data import reference_system
+from kautztwin.mpc import MPCProblem, plant_model, simulate_closed_loop
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_core import machine_info  # noqa: E402
+
+DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "mpc.json"
+MAIN = (0.8, 8)  # the Kautz/Laguerre configuration checked against the acceptance targets
+PLATEAU = 60  # samples per set-point level
+
+
+def _cases() -> dict[str, dict[str, Any]]:
+    """Plants, sampling, weights, limits and set-point schedules."""
+    hydraulic = scipy.signal.lti([1.0], np.poly([-1.0, -2.0, -8.0]).real)
+    return {
+        "reference_dt0.1": {
+            "plant": plant_model(reference_system(), dt=0.1),
+            "description": "6/((s+1)(s+3)(s^2+s+4)), ZOH dt = 0.1 s, static gain 0.5",
+            "r": 0.05,
+            "limits": dict(u_min=-2.5, u_max=2.5, du_min=-0.3, du_max=0.3, y_min=-0.6, y_max=1.02),
+            "levels": [1.0, -0.5, 0.8, 0.0],
+            "kautz": kt.KautzBasis([0.85, 0.75 + 0.2j, 0.75 - 0.2j, 0.6, 0.9, 0.5], dt=0.1),
+        },
+        "hydraulic_dt0.05": {
+            "plant": plant_model(hydraulic, dt=0.05),
+            "description": "1/((s+1)(s+2)(s+8)), ZOH dt = 0.05 s, static gain 1/16",
+            "r": 0.01,
+            "limits": dict(
+                u_min=-14.0, u_max=20.0, du_min=-1.5, du_max=1.5, y_min=-0.65, y_max=1.01
+            ),
+            "levels": [1.0, 0.3, -0.6, 0.0],
+            "kautz": kt.KautzBasis([0.9, 0.8 + 0.15j, 0.8 - 0.15j, 0.7, 0.95, 0.6], dt=0.05),
+        },
+    }
+
+
+def _configs(case: dict[str, Any], horizon: int) -> dict[str, dict[str, Any]]:
+    """Controllers compared on one case: name -> MPCProblem keyword arguments."""
+    out: dict[str, dict[str, Any]] = {"full": {"full_horizon": True}}
+    if horizon == 50:
+        for a in (0.6, 0.8, 0.9):
+            for n in (4, 8):
+                out[f"laguerre a={a} N={n}"] = {"basis": (a, n)}
+        out["kautz N=6 (pair)"] = {"basis": case["kautz"]}
+    else:
+        out[f"laguerre a={MAIN[0]} N={MAIN[1]}"] = {"basis": MAIN}
+    return out
+
+
+def _problem(case: dict[str, Any], horizon: int, kwargs: dict[str, Any], warm: bool) -> MPCProblem:
+    return MPCProblem(
+        case["plant"],
+        kwargs.get("basis"),
+        horizon,
+        r=case["r"],
+        full_horizon=kwargs.get("full_horizon", False),
+        warm_start=warm,
+        **case["limits"],
+    )
+
+
+def _solve_inputs(problem: MPCProblem, res: Any) -> list[tuple[np.ndarray, float, float]]:
+    """``(x, setpoint, u_prev)`` of every solve of a closed-loop run (SISO, 'model' state)."""
+    P = problem.plant
+    dx = np.zeros(P.n_states)
+    u_prev = 0.0
+    out = []
+    for k in range(res.u.shape[0]):
+        out.append((np.r_[dx, res.y[k]], float(res.setpoint[k]), u_prev))
+        dx = P.A @ dx + P.B[:, 0] * res.du[k]
+        u_prev = float(res.u[k])
+    return out
+
+
+def bench_case(name: str, case: dict[str, Any], horizon: int, repeats: int) -> dict[str, Any]:
+    """Closed loop once per controller, then timed replays of its solves, interleaved."""
+    configs = _configs(case, horizon)
+    setpoints = np.repeat(case["levels"], PLATEAU)
+    runs: dict[str, Any] = {}
+    inputs: dict[str, list] = {}
+    problems: dict[str, MPCProblem] = {}
+    for key, kw in configs.items():
+        problems[key] = _problem(case, horizon, kw, warm=True)
+        runs[key] = simulate_closed_loop(case["plant"], problems[key], setpoints)
+        inputs[key] = _solve_inputs(problems[key], runs[key])
+    n_steps = len(setpoints)
+    keys = list(configs)
+    wall = {(k, w): np.empty((repeats, n_steps)) for k in keys for w in (True, False)}
+    qp = {(k, w): np.empty((repeats, n_steps)) for k in keys for w in (True, False)}
+    gc.collect()
+    gc.disable()
+    try:
+        for rep in range(repeats):
+            # fresh workspaces, so that every replay starts like the closed loop did
+            fresh = {
+                (k, w): _problem(case, horizon, configs[k], w) for k in keys for w in (True, False)
+            }
+            order = list(fresh)
+            for step in range(n_steps):
+                # every controller solves its own step `step` back to back: load bursts hit all
+                for j in range(len(order)):
+                    key = order[(j + step) % len(order)]
+                    x, r, u_prev = inputs[key[0]][step]
+                    t0 = time.perf_counter()
+                    res = fresh[key].solve(x, r, u_prev=u_prev)
+                    wall[key][rep, step] = time.perf_counter() - t0
+                    qp[key][rep, step] = res.solver_time
+                    if abs(res.du[0] - runs[key[0]].du[step]) > 1e-6:
+                        raise RuntimeError(f"{name}/{key}: replay differs from the closed loop")
+    finally:
+        gc.enable()
+    full_cost = runs["full"].cost
+    rows = []
+    for key in keys:
+        res, problem = runs[key], problems[key]
+        rows.append(
+            {
+                "method": key,
+                "n_variables": problem.n_variables,
+                "n_constraint_rows": problem.n_constraints,
+                "wall_us": _stats(wall[key, True] * 1e6),
+                "qp_us": _stats(qp[key, True] * 1e6),
+                "wall_cold_us": _stats(wall[key, False] * 1e6),
+                "qp_cold_us": _stats(qp[key, False] * 1e6),
+                "iterations_max": int(res.iterations.max()),
+                "closed_loop_cost": res.cost,
+                "cost_ratio": res.cost / full_cost,
+                "violations": res.violations,
+                "max_violation": res.max_violation,
+                "failed_solves": res.n_failed,
+                "n_steps": n_steps,
+            }
+        )
+    full = rows[0]
+    for row in rows[1:]:
+        row["fewer_variables"] = full["n_variables"] / row["n_variables"]
+        for what in ("wall_us", "qp_us", "wall_cold_us", "qp_cold_us"):
+            for stat in ("median", "p99"):
+                row[f"speedup_{stat}_{what[:-3]}"] = full[what][stat] / row[what][stat]
+    return {
+        "case": name,
+        "description": case["description"],
+        "horizon": horizon,
+        "r": case["r"],
+        "limits": case["limits"],
+        "setpoint_levels": case["levels"],
+        "plateau_samples": PLATEAU,
+        "repeats": repeats,
+        "rows": rows,
+    }
+
+
+def _stats(x: np.ndarray) -> dict[str, float]:
+    return {
+        "median": float(np.median(x)),
+        "p99": float(np.percentile(x, 99)),
+        "mean": float(np.mean(x)),
+        "max": float(np.max(x)),
+        "n": int(x.size),
+    }
+
+
+def _table(results: list[dict[str, Any]]) -> str:
+    head = (
+        f"{'method':<21}{'vars':>5}{'rows':>6}{'wall med':>10}{'wall p99':>10}"
+        f"{'QP med':>9}{'QP p99':>9}{'QPc med':>9}{'QPc p99':>9}{'cost ratio':>12}{'viol':>6}"
+        f"{'fail':>6}"
+    )
+    lines = [
+        "times in microseconds per MPC step: wall = whole MPCProblem.solve call (warm start),",
+        "QP = DAQP's own solve time (warm start), QPc = DAQP with cold starts",
+    ]
+    for res in results:
+        lines.append(f"\n{res['case']}  (horizon {res['horizon']}; {res['description']})")
+        lines.append(head)
+        for row in res["rows"]:
+            lines.append(
+                f"{row['method']:<21}{row['n_variables']:>5}{row['n_constraint_rows']:>6}"
+                f"{row['wall_us']['median']:>10.1f}{row['wall_us']['p99']:>10.1f}"
+                f"{row['qp_us']['median']:>9.2f}{row['qp_us']['p99']:>9.2f}"
+                f"{row['qp_cold_us']['median']:>9.2f}{row['qp_cold_us']['p99']:>9.2f}"
+                f"{row['cost_ratio']:>12.5f}"
+                f"{row['violations']:>6}{row['failed_solves']:>6}"
+            )
+    return "\n".join(lines)
+
+
+def _acceptance(results: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The issue's targets for the fixed configuration MAIN, per case and horizon."""
+    main = f"laguerre a={MAIN[0]} N={MAIN[1]}"
+    out = []
+    for res in results:
+        full = res["rows"][0]
+        row = next(r for r in res["rows"] if r["method"] == main)
+        out.append(
+            {
+                "case": res["case"],
+                "horizon": res["horizon"],
+                "method": main,
+                "fewer_variables": row["fewer_variables"],
+                "fewer_variables_ge_5": row["fewer_variables"] >= 5,
+                "speedup_median_wall": row["speedup_median_wall"],
+                "speedup_median_qp": row["speedup_median_qp"],
+                "speedup_median_qp_cold": row["speedup_median_qp_cold"],
+                "speedup_p99_wall": row["speedup_p99_wall"],
+                "speedup_p99_qp": row["speedup_p99_qp"],
+                "speedup_median_ge_5_wall": row["speedup_median_wall"] >= 5,
+                "speedup_median_ge_5_qp": row["speedup_median_qp"] >= 5,
+                "cost_within_5_percent": abs(row["cost_ratio"] - 1) <= 0.05,
+                "zero_violations": row["violations"] == 0 and full["violations"] == 0,
+                "median_solve_below_1ms": row["wall_us"]["median"] < 1000,
+            }
+        )
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--quick", action="store_true", help="one repeat (smoke test)")
+    parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="JSON file to write")
+    args = parser.parse_args(argv)
+    repeats = 1 if args.quick else 10
+    machine = machine_info()
+    started = time.perf_counter()
+    results = [
+        bench_case(name, case, horizon, repeats)
+        for horizon in (50, 100)
+        for name, case in _cases().items()
+    ]
+    acceptance = _acceptance(results)
+    text = _table(results)
+    print(text)
+    print(f"\nAcceptance (Laguerre a={MAIN[0]}, N={MAIN[1]} vs full horizon):")
+    for acc in acceptance:
+        print(
+            f"  {acc['case']:<18} Np={acc['horizon']:<4} vars x{acc['fewer_variables']:.2f}  "
+            f"median speed-up: wall x{acc['speedup_median_wall']:.2f}, "
+            f"QP x{acc['speedup_median_qp']:.2f} (cold x{acc['speedup_median_qp_cold']:.2f})  "
+            f"cost ok={acc['cost_within_5_percent']}  no violations={acc['zero_violations']}  "
+            f"median < 1 ms={acc['median_solve_below_1ms']}"
+        )
+    out = {
+        "benchmark": "mpc",
+        "created_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+        "command": " ".join([Path(sys.argv[0]).name, *(sys.argv[1:] if argv is None else argv)]),
+        "quick": args.quick,
+        "settings": {"main": list(MAIN), "plateau_samples": PLATEAU, "repeats": repeats},
+        "machine": machine,
+        "elapsed_s": time.perf_counter() - started,
+        "results": results,
+        "acceptance": acceptance,
+        "table": text,
+    }
+    out["machine"]["load_average_at_end"] = list(os.getloadavg())
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(out, indent=2) + "\n", encoding="utf-8")
+    print(f"\nwrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
