@@ -1,4 +1,4 @@
-"""Digital twin runtime: the digital model, sample sanitising and the history store."""
+"""Digital twin runtime: plants, digital model, update module, sample sanitising, history."""
 
 from __future__ import annotations
 
@@ -16,22 +16,70 @@ from .history import (
     RunInfo,
     SQLiteHistory,
 )
+from .plants import (
+    Clock,
+    HydraulicPlant,
+    Plant,
+    PlantRun,
+    Reading,
+    ReplayExhaustedError,
+    ReplayInputWarning,
+    ReplayPlant,
+    TCLabPlant,
+    TemperatureSchedule,
+    run_open_loop,
+    temperature_for_pole_ratio,
+)
 from .signals import SampleFlag, SampleSanitizer, SanitizedSample
+from .update import (
+    FitHistory,
+    ModelUpdate,
+    OutputErrorFit,
+    RecursiveKautzEstimator,
+    SyncEvent,
+    SyncMonitor,
+    Updater,
+    UpdateResult,
+    discretize_model,
+    identify_output_error,
+)
 
 __all__ = [
-    "SCHEMA_VERSION",
+    "Clock",
     "DigitalModel",
+    "discretize_model",
     "Event",
+    "FitHistory",
     "HistoryError",
     "HistoryStore",
+    "HydraulicPlant",
+    "identify_output_error",
     "Measurement",
     "Measurements",
     "MemoryHistory",
+    "ModelUpdate",
+    "OutputErrorFit",
+    "Plant",
+    "PlantRun",
     "Prediction",
+    "Reading",
+    "RecursiveKautzEstimator",
+    "ReplayExhaustedError",
+    "ReplayInputWarning",
+    "ReplayPlant",
     "ResumeState",
+    "run_open_loop",
     "RunInfo",
     "SampleFlag",
     "SampleSanitizer",
     "SanitizedSample",
+    "SCHEMA_VERSION",
     "SQLiteHistory",
+    "SyncEvent",
+    "SyncMonitor",
+    "TCLabPlant",
+    "temperature_for_pole_ratio",
+    "TemperatureSchedule",
+    "Updater",
+    "UpdateResult",
 ]
