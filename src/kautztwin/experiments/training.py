@@ -75,10 +75,11 @@ def train_from_spec(
     config = None if spec.max_epochs is None else {"max_epochs": spec.max_epochs}
     start = time.perf_counter()
     if spec.adaptive:
-        from ..nn import AdaptivePoleEstimator
+        from ..nn.adaptive import AdaptivePoleEstimator
 
+        # the adaptive estimator has its own defaults; the paper preset does not apply to it
         est = AdaptivePoleEstimator(
-            preset=spec.preset, random_state=spec.random_state, progress=progress, config=config
+            random_state=spec.random_state, progress=progress, config=config
         ).fit(train)
         kind = "adaptive"
     else:
@@ -102,7 +103,8 @@ def train_from_spec(
             for clean, m in zip(test.clean, models, strict=True)
         ]
     )
-    _plot_curves(est.histories_, out / "curves.png")
+    histories = est.histories_
+    _plot_curves(histories, out / "curves.png")
     summary = {
         "estimator": kind,
         "preset": spec.preset,
@@ -113,8 +115,8 @@ def train_from_spec(
         "basis_poles": None if spec.adaptive else [[p.real, p.imag] for p in label_basis.poles],
         "train_seconds": seconds,
         "seconds_per_record": per_record,
-        "final_train_loss": [h.train_loss[-1] for h in est.histories_],
-        "final_val_loss": [h.val_loss[-1] for h in est.histories_],
+        "final_train_loss": [h.train_loss[-1] for h in histories],
+        "final_val_loss": [h.val_loss[-1] for h in histories],
         "test_fit_mean": float(np.mean(fits)),
         "test_fit_median": float(np.median(fits)),
         "test_fit_min": float(np.min(fits)),
@@ -165,7 +167,7 @@ def load_estimator(model_dir: str | Path) -> Any:
     elif not path.exists():
         raise DataError(f"no model at {path}")
     if kind == "adaptive":
-        from ..nn import AdaptivePoleEstimator
+        from ..nn.adaptive import AdaptivePoleEstimator
 
         return AdaptivePoleEstimator.load(path)
     if kind != "coefficients":

@@ -1,0 +1,320 @@
+"""Benchmark of the adaptive-pole estimator against the statistical limit.
+
+The system is the paper's ``G(s) = k / ((s + a)(s + b)(s^2 + 2 zeta wn s + wn^2))``
+(``kautztwin.datasets.paper_system``) with every parameter uniform within +-50 %
+of its nominal value; records are impulse responses on [0, 20] s (900 samples)
+with white noise of 10 % and of 1 % of each record's peak.  For each noise level
+it trains an :class:`~kautztwin.nn.adaptive.AdaptivePoleEstimator` on freshly
+simulated records and then compares, on fresh test records, the fit percent of
+each method's noise-free estimate against the noise-free truth:
+
+* ``adaptive``: the network (poles) + least squares (coefficients), batched
+  (:meth:`~kautztwin.nn.adaptive.AdaptivePoleEstimator.predict_responses`: network in
+  float32, basis and least squares in float64, exactly what ``predict`` returns);
+* ``adaptive_float32``: the same with the basis and least squares in float32 too
+  (the fitted responses agree with ``adaptive`` to about 1e-6 relative);
+* ``adaptive_refine``: the same, then :func:`kautztwin.optimize_poles` per record;
+* ``oracle``: least squares in the true model structure started at the true
+  parameters (:func:`kautztwin.nn.oracle.oracle_fit`): the statistical limit;
+* ``fixed_basis_ceiling``: the noise-free truth projected onto the nominal
+  Kautz basis (the best any fixed-basis estimator can do);
+* ``projection``: the noisy record projected onto the nominal basis.
+
+Seconds per record are wall-clock times of each method over all test records
+(batched where the method is); ``adaptive``, ``adaptive_float32`` and ``oracle``
+alternate over five chunks of the test set, so that a burst of load from other
+processes hits them alike, after a warm-up of the network.  Every computation runs single-threaded
+(``torch.set_num_threads(1)``; ``OMP/OPENBLAS/MKL_NUM_THREADS=1`` unless set):
+on a shared 2-core machine two BLAS/OpenMP thread pools competing with each
+other slow scipy's small matrix exponentials down by up to 100x, which would
+distort the oracle's time.
+
+Usage::
+
+    python benchmarks/bench_adaptive.py [--quick] [--out benchmarks/results/adaptive.json]
+"""
+
+from __future__ import annotations
+
+import os
+
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import argparse  # noqa: E402 - the thread variables must be set before numpy loads
+import datetime as dt  # noqa: E402
+import json  # noqa: E402
+import platform  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from collections.abc import Callable  # noqa: E402
+from pathlib import Path  # noqa: E402
+from typing import Any  # noqa: E402
+
+import numpy as np  # noqa: E402
+import scipy  # noqa: E402
+import torch  # noqa: E402
+
+import kautztwin as kt  # noqa: E402
+from kautztwin.datasets import draw_parameters, make_dataset, paper_system  # noqa: E402
+from kautztwin.nn.adaptive import AdaptivePoleEstimator  # noqa: E402
+from kautztwin.nn.oracle import oracle_fit  # noqa: E402
+
+N_SAMPLES = 900
+T_END = 20.0
+UNCERTAINTY = 0.5
+NOISES = (0.1, 0.01)
+#: acceptance: largest allowed gap (fit points) between the oracle's and adaptive's mean fit
+GAP_LIMIT = {0.1: 1.0, 0.01: 0.2}
+SPEEDUP_LIMIT = 100.0
+DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "adaptive.json"
+FULL = {"n_train": 20000, "n_test": 1000, "estimator": {}}
+QUICK = {
+    "n_train": 3000,
+    "n_test": 200,
+    "estimator": {
+        "hidden": (128, 128),
+        "pretrain_epochs": 10,
+        "config": {"max_epochs": 2},
+    },
+}
+METHODS = (
+    "adaptive",
+    "adaptive_float32",
+    "adaptive_refine",
+    "oracle",
+    "fixed_basis_ceiling",
+    "projection",
+)
+
+
+def _git(*args: str) -> str | None:
+    try:
+        out = subprocess.run(
+            ["git", *args],
+            cwd=Path(__file__).resolve().parent,
+            capture_output=True,
+            text=True,
+            timeout=10,
+            check=True,
+        )
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return out.stdout.strip()
+
+
+def _cpu_model() -> str:
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def machine_info() -> dict[str, Any]:
+    """Where the numbers come from: CPU, library versions, thread settings, load."""
+    affinity = getattr(os, "sched_getaffinity", None)
+    return {
+        "platform": platform.platform(),
+        "cpu_model": _cpu_model(),
+        "cpu_count": os.cpu_count(),
+        "cpus_available": len(affinity(0)) if affinity else os.cpu_count(),
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+        "scipy": scipy.__version__,
+        "torch": torch.__version__,
+        "torch_threads": torch.get_num_threads(),
+        "kautztwin": kt.__version__,
+        "load_average_at_start": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
+        "thread_env": {
+            k: os.environ[k]
+            for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+            if k in os.environ
+        },
+        "git_commit": _git("rev-parse", "HEAD") or None,
+        "git_dirty": None if (status := _git("status", "--porcelain")) is None else bool(status),
+    }
+
+
+def _stats(fits: np.ndarray, seconds: float) -> dict[str, float]:
+    return {
+        "mean": float(np.mean(fits)),
+        "median": float(np.median(fits)),
+        "p10": float(np.percentile(fits, 10)),
+        "min": float(np.min(fits)),
+        "seconds_per_record": seconds / fits.size,
+    }
+
+
+def _timed(fn: Callable[[], np.ndarray]) -> tuple[np.ndarray, float]:
+    start = time.perf_counter()
+    out = fn()
+    return out, time.perf_counter() - start
+
+
+def _oracle(t: np.ndarray, H: np.ndarray, system: Any, P: np.ndarray) -> np.ndarray:
+    return np.array([oracle_fit(t, y, system, p).response for y, p in zip(H, P, strict=True)])
+
+
+def run_case(noise: float, settings: dict[str, Any], seed: int) -> dict[str, Any]:
+    """Train at one noise level and compare every method on fresh test records."""
+    system = paper_system()
+    t = np.linspace(0.0, T_END, N_SAMPLES)
+    nominal = kt.KautzBasis(system.poles())
+
+    est = AdaptivePoleEstimator(random_state=seed, **settings["estimator"])
+    start = time.perf_counter()
+    est.fit_distribution(system, UNCERTAINTY, t, noise=noise, n_train=settings["n_train"])
+    train_seconds = time.perf_counter() - start
+
+    P = draw_parameters(system, UNCERTAINTY, settings["n_test"], random_state=seed + 1000)
+    test = make_dataset(system, P, nominal, t, noise=noise, random_state=seed + 2000)
+    H, clean = test.responses, test.clean
+
+    # warm-up: the first calls allocate (and page in) the large work arrays
+    for dtype in (torch.float64, torch.float32):
+        est.predict_responses(H[:512], dtype=dtype)
+    estimates: dict[str, tuple[np.ndarray, float]] = {}
+
+    # speed: adaptive and oracle alternate over chunks of the test set, so that a burst of
+    # load from other processes on a shared machine hits both alike
+    parts: dict[str, list[np.ndarray]] = {"adaptive": [], "adaptive_float32": [], "oracle": []}
+    seconds = dict.fromkeys(parts, 0.0)
+    f32 = torch.float32
+    for idx in np.array_split(np.arange(H.shape[0]), 5):
+        for name, fn in (
+            ("adaptive", lambda idx=idx: est.predict_responses(H[idx])),
+            ("adaptive_float32", lambda idx=idx: est.predict_responses(H[idx], dtype=f32)),
+            ("oracle", lambda idx=idx: _oracle(t, H[idx], system, P[idx])),
+        ):
+            yhat, sec = _timed(fn)
+            parts[name].append(yhat)
+            seconds[name] += sec
+    for name, chunks in parts.items():
+        estimates[name] = (np.concatenate(chunks), seconds[name])
+    estimates["adaptive_refine"] = _timed(lambda: est.predict_responses(H, refine=True))
+    K = nominal.evaluate(t)
+    estimates["fixed_basis_ceiling"] = _timed(
+        lambda: kt.project(nominal, t, clean, method="lstsq") @ K
+    )
+    estimates["projection"] = _timed(lambda: kt.project(nominal, t, H, method="lstsq") @ K)
+
+    methods = {
+        name: _stats(np.asarray(kt.fit_percent(clean, yhat)), sec)
+        for name, (yhat, sec) in estimates.items()
+    }
+    gap = methods["oracle"]["mean"] - methods["adaptive"]["mean"]
+    gap_refine = methods["oracle"]["mean"] - methods["adaptive_refine"]["mean"]
+    oracle_s = methods["oracle"]["seconds_per_record"]
+    speedup = oracle_s / methods["adaptive"]["seconds_per_record"]
+    speedup32 = oracle_s / methods["adaptive_float32"]["seconds_per_record"]
+    limit = GAP_LIMIT[noise]
+    return {
+        "noise": noise,
+        "n_train": settings["n_train"],
+        "n_train_records_fitted": est.n_train_,
+        "n_test": settings["n_test"],
+        "training_seconds": train_seconds,
+        "training_seconds_network": est.training_seconds_,
+        "stage_val_fit": [100.0 * (1.0 - h.best_loss) for h in est.histories_],
+        "n_parameters": est.n_parameters_,
+        "estimator": {k: v for k, v in est.get_params().items() if k != "config"},
+        "config": est.config_.to_dict(),
+        "methods": methods,
+        "acceptance": {
+            "gap_limit": limit,
+            "gap_oracle_minus_adaptive": gap,
+            "gap_met": bool(gap <= limit),
+            "gap_oracle_minus_adaptive_refine": gap_refine,
+            "gap_refine_met": bool(gap_refine <= limit),
+            "speedup_vs_oracle": speedup,
+            "speedup_limit": SPEEDUP_LIMIT,
+            "speedup_met": bool(speedup >= SPEEDUP_LIMIT),
+            "speedup_float32_vs_oracle": speedup32,
+            "speedup_float32_met": bool(speedup32 >= SPEEDUP_LIMIT),
+        },
+    }
+
+
+def _print_table(cases: list[dict[str, Any]]) -> None:
+    for case in cases:
+        acc = case["acceptance"]
+        print(
+            f"\nnoise {100 * case['noise']:g} % of peak, +-{100 * UNCERTAINTY:g} % uncertainty, "
+            f"{case['n_test']} test records (training: {case['n_train']} records, "
+            f"{case['training_seconds']:.0f} s)"
+        )
+        print(f"{'method':<22}{'mean':>9}{'median':>9}{'p10':>9}{'min':>9}{'s/record':>12}")
+        for name in METHODS:
+            m = case["methods"][name]
+            print(
+                f"{name:<22}{m['mean']:>9.3f}{m['median']:>9.3f}{m['p10']:>9.3f}"
+                f"{m['min']:>9.3f}{m['seconds_per_record']:>12.2e}"
+            )
+        print(
+            f"gap oracle - adaptive {acc['gap_oracle_minus_adaptive']:.3f} "
+            f"(limit {acc['gap_limit']:g}: {'met' if acc['gap_met'] else 'NOT met'}); "
+            f"with refine {acc['gap_oracle_minus_adaptive_refine']:.3f} "
+            f"({'met' if acc['gap_refine_met'] else 'NOT met'}); "
+            f"speed-up vs oracle {acc['speedup_vs_oracle']:.0f}x "
+            f"({'met' if acc['speedup_met'] else 'NOT met'}), float32 inference "
+            f"{acc['speedup_float32_vs_oracle']:.0f}x "
+            f"({'met' if acc['speedup_float32_met'] else 'NOT met'}; limit {SPEEDUP_LIMIT:g}x)"
+        )
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument(
+        "--quick", action="store_true", help="small training and test sets (about a minute)"
+    )
+    parser.add_argument(
+        "--out", type=Path, default=DEFAULT_OUT, help="JSON file (default: results/adaptive.json)"
+    )
+    parser.add_argument("--seed", type=int, default=0, help="seed of training and test data")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(1)
+    settings = QUICK if args.quick else FULL
+
+    machine = machine_info()
+    started = time.perf_counter()
+    cases = []
+    for noise in NOISES:
+        cases.append(run_case(noise, settings, args.seed))
+        _print_table(cases[-1:])
+    result = {
+        "benchmark": "adaptive",
+        "created_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+        "command": " ".join([Path(sys.argv[0]).name, *(sys.argv[1:] if argv is None else argv)]),
+        "quick": args.quick,
+        "settings": {
+            "system": "paper_system: k/((s+a)(s+b)(s^2+2 zeta wn s+wn^2)), k=6 a=1 b=3 wn=2 "
+            "zeta=0.25",
+            "uncertainty": UNCERTAINTY,
+            "n_samples": N_SAMPLES,
+            "t_end": T_END,
+            "noise_kind": "white",
+            "fit": "fit percent (MATLAB compare) of each estimate against the noise-free response",
+            "timer": "time.perf_counter over all test records of one method, after a warm-up",
+            "n_train": settings["n_train"],
+            "n_test": settings["n_test"],
+        },
+        "machine": machine,
+        "cases": cases,
+        "elapsed_s": time.perf_counter() - started,
+    }
+    result["machine"]["load_average_at_end"] = (
+        list(os.getloadavg()) if hasattr(os, "getloadavg") else None
+    )
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(result, indent=2) + "\n", encoding="utf-8")
+    print(f"\n{result['elapsed_s']:.1f} s; results written to {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
