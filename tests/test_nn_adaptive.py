@@ -172,6 +172,18 @@ def test_match_labels_orders_blocks_by_rate():
     assert valid.tolist() == [True, False]
 
 
+def test_step_records():
+    options = {**SMALL, "pretrain_epochs": 5, "config": {"max_epochs": 1}}
+    est = AdaptivePoleEstimator(**options).fit_distribution(
+        SYSTEM, 0.3, T, noise=0.02, n_train=300, kind="step"
+    )
+    assert est.kind_ == "step"
+    data = make_dataset(SYSTEM, SYSTEM.nominal, NOMINAL, T, kind="step", noise=0.02, random_state=3)
+    (model,) = est.predict_models(data)
+    assert np.all(model.poles.real < 0)
+    np.testing.assert_allclose(model.step(T), est.predict_responses(data)[0], rtol=0, atol=1e-10)
+
+
 # --------------------------------------------------------------------------- files
 def test_save_load_round_trip(fitted, test_data, tmp_path):
     fitted.save(tmp_path / "m")

@@ -286,3 +286,10 @@ def test_no_warnings_in_a_normal_run():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         fit_network(fresh_mlp(), (x, y), (x, y), mse, config(max_epochs=2, grad_clip=1.0))
+
+
+def test_standardizer_constant_scale_for_labels():
+    # labels of a system without uncertainty are constant: with a negligible scale, whatever
+    # a network outputs maps back to the constant (the -148 % paper_dnn fit at 0 % uncertainty)
+    s = Standardizer.fit(np.full((5, 2), 0.3), constant_scale=1e-300)
+    np.testing.assert_array_equal(s.inverse_transform(np.array([[2.0, -1.0]])), [[0.3, 0.3]])

@@ -266,7 +266,7 @@ def reproduce_simulation(
     # ---------------------------------------------------------------- sweep
     sweep = []
     for noise in setup.noises:
-        say(f"sweep: noise {noise:.0%}: training the adaptive estimator")
+        say(f"sweep: noise {noise:.0%}")
         ad = (
             adaptive
             if noise == 0.1

@@ -13,8 +13,10 @@ except ImportError as _exc:  # pragma: no cover - depends on the environment
         "kautztwin.nn needs PyTorch, which is not installed: pip install 'kautztwin[nn]'"
     ) from _exc
 
+from .adaptive import DEFAULT_ADAPTIVE_CONFIG, AdaptivePoleEstimator, AdaptivePoleNetwork
 from .estimator import CoefficientEstimator
 from .networks import PaperNetwork, paper_parameter_count
+from .oracle import OracleFit, oracle_fit, simulate_parametric
 from .plots import plot_history
 from .training import (
     PRESETS,
@@ -26,14 +28,20 @@ from .training import (
 )
 
 __all__ = [
+    "DEFAULT_ADAPTIVE_CONFIG",
+    "AdaptivePoleEstimator",
+    "AdaptivePoleNetwork",
     "CoefficientEstimator",
+    "OracleFit",
     "PRESETS",
     "PaperNetwork",
     "Standardizer",
     "TrainingConfig",
     "TrainingHistory",
     "fit_network",
+    "oracle_fit",
     "paper_parameter_count",
     "plot_history",
+    "simulate_parametric",
     "split_indices",
 ]

@@ -126,9 +126,7 @@ class TrainingConfig:
                 f"weight_decay must be a number >= 0, got {self.weight_decay!r}"
             ) from exc
         if not math.isfinite(wd) or wd < 0:
-            raise DataError(
-                f"weight_decay must be a finite number >= 0, got {self.weight_decay!r}"
-            )
+            raise DataError(f"weight_decay must be a finite number >= 0, got {self.weight_decay!r}")
         set_(self, "weight_decay", wd)
         try:
             vf = float(self.validation_fraction)
@@ -190,9 +188,7 @@ class TrainingConfig:
                 learning_rate=1e-3, max_epochs=150, batch_size=128, grad_clip=1.0, patience=20
             )
         else:
-            raise DataError(
-                f"preset must be one of {', '.join(map(repr, PRESETS))}; got {name!r}"
-            )
+            raise DataError(f"preset must be one of {', '.join(map(repr, PRESETS))}; got {name!r}")
         return base.replace(**overrides) if overrides else base
 
     def replace(self, **changes: Any) -> TrainingConfig:
@@ -376,9 +372,7 @@ def split_indices(
         raise DataError(f"validation_fraction must lie in (0, 1), got {validation_fraction!r}")
     n_val = max(1, int(round(f * n)))
     if n_val >= n:
-        raise DataError(
-            f"validation_fraction = {f:g} of {n} records leaves no training records"
-        )
+        raise DataError(f"validation_fraction = {f:g} of {n} records leaves no training records")
     perm = np.random.default_rng(_seed(random_state)).permutation(int(n))
     return np.sort(perm[n_val:]), np.sort(perm[:n_val])
 
@@ -441,7 +435,7 @@ class Standardizer:
         return int(self.mean.size)
 
     @classmethod
-    def fit(cls, x: ArrayLike, *, rtol: float = 1e-12) -> Standardizer:
+    def fit(cls, x: ArrayLike, *, rtol: float = 1e-12, constant_scale: float = 1.0) -> Standardizer:
         """Mean and standard deviation (``ddof=0``) of every column.
 
         Parameters
@@ -450,7 +444,10 @@ class Standardizer:
             At least one row.
         rtol : float, default=1e-12
             A column whose standard deviation is at most ``rtol`` times the
-            largest absolute value in ``x`` (or zero) gets scale 1.
+            largest absolute value in ``x`` (or zero) gets ``constant_scale``.
+        constant_scale : float, default=1.0
+            Scale of constant columns.  Labels use a negligible one, so that a
+            constant label is predicted as its value whatever the network outputs.
 
         Returns
         -------
@@ -471,7 +468,7 @@ class Standardizer:
         mean = x.mean(axis=0)
         std = x.std(axis=0)
         tiny = rtol * float(np.max(np.abs(x))) if x.size else 0.0
-        std = np.where(std > tiny, std, 1.0)
+        std = np.where(std > tiny, std, constant_scale)
         return cls(mean, std)
 
     def _check(self, x: ArrayLike) -> NDArray[np.float64]:
@@ -680,8 +677,12 @@ def fit_network(
             params, lr=config.learning_rate, weight_decay=config.weight_decay
         )
         bar = tqdm(
-            range(config.max_epochs), desc="training", unit="epoch", disable=not progress,
-            leave=False, dynamic_ncols=True,
+            range(config.max_epochs),
+            desc="training",
+            unit="epoch",
+            disable=not progress,
+            leave=False,
+            dynamic_ncols=True,
         )
         try:
             for epoch in bar:
