@@ -291,5 +291,7 @@ def test_no_warnings_in_a_normal_run():
 def test_standardizer_constant_scale_for_labels():
     # labels of a system without uncertainty are constant: with a negligible scale, whatever
     # a network outputs maps back to the constant (the -148 % paper_dnn fit at 0 % uncertainty)
-    s = Standardizer.fit(np.full((5, 2), 0.3), constant_scale=1e-300)
-    np.testing.assert_array_equal(s.inverse_transform(np.array([[2.0, -1.0]])), [[0.3, 0.3]])
+    s = Standardizer.fit(np.full((5, 2), 0.3), constant_scale=None)
+    # the scale is the detection threshold 1e-12 * 0.3: an output of 2 moves the label by 6e-13
+    np.testing.assert_allclose(s.inverse_transform(np.array([[2.0, -1.0]])), [[0.3, 0.3]],
+                               rtol=1e-11)

@@ -259,7 +259,7 @@ class CoefficientEstimator:
         Y = np.asarray(dataset.coefficients, dtype=float)
         input_scaler = Standardizer.fit(X[train_idx])
         # a constant label (no uncertainty in it) is predicted exactly, not mean + net output
-        label_scaler = Standardizer.fit(Y[train_idx], constant_scale=1e-300)
+        label_scaler = Standardizer.fit(Y[train_idx], constant_scale=None)
         Xs = torch.from_numpy(input_scaler.transform(X).astype(np.float32))
         Ys = torch.from_numpy(label_scaler.transform(Y).astype(np.float32))
         tr = torch.from_numpy(train_idx)

@@ -144,17 +144,17 @@ class TrainingConfig:
     def preset(cls, name: str, **overrides: Any) -> TrainingConfig:
         """A named preset, optionally with some fields replaced.
 
-        ========================  ==========  ==========
+        ========================  ==========  ===========
         field                     ``paper``   ``default``
-        ========================  ==========  ==========
+        ========================  ==========  ===========
         learning_rate             1e-5        1e-3
         max_epochs                1000        150
         batch_size                50          128
         grad_clip (L2 norm)       1e-4        1.0
         patience                  None        20
-        weight_decay              0           0
+        weight_decay              0           1e-2
         validation_fraction       0.15        0.15
-        ========================  ==========  ==========
+        ========================  ==========  ===========
 
         ``paper`` follows the paper's MATLAB options (learning rate 1e-5,
         gradient threshold 1e-4 on the global L2 norm, 1000 epochs, mini-batches
@@ -185,7 +185,8 @@ class TrainingConfig:
             )
         elif name == "default":
             base = cls(
-                learning_rate=1e-3, max_epochs=150, batch_size=128, grad_clip=1.0, patience=20
+                learning_rate=1e-3, max_epochs=150, batch_size=128, grad_clip=1.0, patience=20,
+                weight_decay=1e-2,
             )
         else:
             raise DataError(f"preset must be one of {', '.join(map(repr, PRESETS))}; got {name!r}")
@@ -435,7 +436,9 @@ class Standardizer:
         return int(self.mean.size)
 
     @classmethod
-    def fit(cls, x: ArrayLike, *, rtol: float = 1e-12, constant_scale: float = 1.0) -> Standardizer:
+    def fit(
+        cls, x: ArrayLike, *, rtol: float = 1e-12, constant_scale: float | None = 1.0
+    ) -> Standardizer:
         """Mean and standard deviation (``ddof=0``) of every column.
 
         Parameters
@@ -445,9 +448,10 @@ class Standardizer:
         rtol : float, default=1e-12
             A column whose standard deviation is at most ``rtol`` times the
             largest absolute value in ``x`` (or zero) gets ``constant_scale``.
-        constant_scale : float, default=1.0
-            Scale of constant columns.  Labels use a negligible one, so that a
-            constant label is predicted as its value whatever the network outputs.
+        constant_scale : float or None, default=1.0
+            Scale of constant columns.  ``None`` uses the detection threshold
+            ``rtol * max|x|``: labels use it, so that a constant label is
+            predicted as its value (to ``rtol``) whatever the network outputs.
 
         Returns
         -------
@@ -468,6 +472,8 @@ class Standardizer:
         mean = x.mean(axis=0)
         std = x.std(axis=0)
         tiny = rtol * float(np.max(np.abs(x))) if x.size else 0.0
+        if constant_scale is None:  # the detection threshold itself: rounding noise stays small
+            constant_scale = tiny if tiny > 0 else 1.0
         std = np.where(std > tiny, std, constant_scale)
         return cls(mean, std)
 
