@@ -64,6 +64,9 @@ class SimulationSetup:
         Epoch budget of the adaptive estimator (``None``: its default).
     oracle_records : int
         Test records the (slow) oracle is run on in the main case.
+    sweep_adaptive_train : int
+        Training records of the adaptive estimators of the sweep's other noise
+        levels (the main case's estimator is reused at its noise level).
     sweep_per_coefficient : bool
         Whether the sweep trains one paper network per coefficient (as the main
         case) or the single multi-output variant (4x cheaper; the default, to
@@ -74,7 +77,7 @@ class SimulationSetup:
 
     n_train: int = 50
     n_test: int = 1000
-    n_sweep: int = 200
+    n_sweep: int = 100
     paper_epochs: int | None = None
     adaptive_train: int = 20000
     adaptive_epochs: int | None = None
@@ -83,6 +86,7 @@ class SimulationSetup:
     noises: tuple[float, ...] = (0.0, 0.01, 0.05, 0.1)
 
     sweep_per_coefficient: bool = False
+    sweep_adaptive_train: int = 8000
 
     @classmethod
     def quick(cls) -> SimulationSetup:
@@ -273,7 +277,11 @@ def reproduce_simulation(
             else AdaptivePoleEstimator(
                 config=adaptive_cfg, random_state=random_state, progress=progress
             ).fit_distribution(
-                paper_system(), 0.5, T_GRID, noise=noise, n_train=setup.adaptive_train
+                paper_system(),
+                0.5,
+                T_GRID,
+                noise=noise,
+                n_train=min(setup.adaptive_train, setup.sweep_adaptive_train),
             )
         )
         for unc in setup.uncertainties:
