@@ -1,0 +1,243 @@
+"""``kautztwin twin run``: run the digital twin on a plant and write its report."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import shlex
+import sys
+from pathlib import Path
+from typing import Any
+
+from ._common import CLIError, print_json
+
+__all__ = ["register", "run"]
+
+DESCRIPTION = """\
+Run the digital twin of a plant: an open-loop identification phase (binary
+excitation, output-error identification of a Kautz model), then closed-loop
+Kautz/Laguerre MPC tracking of set-point steps while the twin keeps itself
+synchronised (recursive least squares on Kautz filters, re-identification on
+desynchronisation, pole re-optimisation and MPC weight retuning, each
+validated before it replaces the running version).  Every sample is committed
+to a SQLite history; a run that is killed resumes from it when the same
+command is run again.
+
+Writes DIR/metrics.json, DIR/report.md, DIR/outputs.png, DIR/sync_fit.png,
+DIR/tracking.png, DIR/timings.png and DIR/history.sqlite.  See docs/twin.md.
+"""
+
+RUN_DESCRIPTION = DESCRIPTION + """
+plants:
+  hydraulic      electro-hydraulic servo drive (valve command 0.3..0.7, speed in
+                 rad/s, dt 0.02 s); --drift moves its dominant pole during the run
+  tclab          Temperature Control Lab emulator (heater 0..100 %, temperature in
+                 degC, dt 1 s)
+  replay:FILE    a recorded CSV (columns t, u, y); the twin follows the record
+                 (no control)
+"""
+
+EPILOG = """\
+examples:
+  kautztwin twin run --plant hydraulic --duration 90 --drift 0.4 --out runs/hyd
+  kautztwin twin run --plant hydraulic --quick --drift 0.4 --faults dropout=0.01,outlier=0.005 \\
+      --out runs/quick
+  kautztwin twin run --plant tclab --setpoints 50,40,45 --out runs/tclab
+  kautztwin twin run --plant hydraulic --setpoints 20:97,45:103,70:100 --drift 0.4@30,60 \\
+      --speedup 5 --out runs/live
+  kautztwin twin run --plant replay:record.csv --out runs/replay
+
+Set-points are in the plant's output units: values at equal intervals over the
+closed-loop phase, or time:value pairs (seconds from the start of the run).
+"""
+
+
+def register(subparsers: argparse._SubParsersAction, common: argparse.ArgumentParser) -> None:
+    """Add the ``twin`` command (with its ``run`` action) to the command-line parser.
+
+    Parameters
+    ----------
+    subparsers : argparse._SubParsersAction
+        The ``kautztwin`` command's subparsers.
+    common : argparse.ArgumentParser
+        Parent parser with the flags every command shares (``--debug``).
+    """
+    p = subparsers.add_parser(
+        "twin", parents=[common], allow_abbrev=False,
+        help="run the digital twin (identification, MPC, updates, history) on a plant",
+        description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    actions = p.add_subparsers(dest="action", title="actions", metavar="ACTION", required=True)
+    r = actions.add_parser(
+        "run", parents=[common], allow_abbrev=False,
+        help="run (or resume) the twin on a plant and write metrics, report and plots",
+        description=RUN_DESCRIPTION, epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    r.add_argument("--plant", required=True, metavar="PLANT",
+                   help="hydraulic, tclab or replay:FILE (see above)")
+    r.add_argument("--duration", type=float, metavar="S",
+                   help="run length in seconds (default: 90 hydraulic, 3600 tclab, the record "
+                   "for a replay; --quick: 40 and 1800)")
+    r.add_argument("--setpoints", metavar="LIST",
+                   help="set-points in output units: v1,v2,... at equal intervals, or t:v pairs "
+                   "(default: 97,103,100 rad/s hydraulic; 50,40,45 degC tclab)")
+    r.add_argument(
+        "--drift", metavar="FRACTION[@T1,T2,...]",
+        help="hydraulic only: slow the dominant pole by FRACTION (0.4 = 40 %%) in equal steps "
+        "starting at T1, T2, ... s (default: at 1/3 and 2/3 of the run); a negative value "
+        "needs '=' (--drift=-0.2)",
+    )
+    r.add_argument("--faults", metavar="SPEC",
+                   help="inject sensor faults after the identification phase, e.g. "
+                   "dropout=0.01,outlier=0.005,late=0.005[,size=40]")
+    r.add_argument("--quick", action="store_true",
+                   help="a short run for a smoke test (well under a minute)")
+    r.add_argument("--speedup", type=float, metavar="X",
+                   help="pace the run in real time, X plant seconds per wall-clock second "
+                   "(default: as fast as possible)")
+    r.add_argument("--seed", type=int, default=0,
+                   help="seed of the excitation, the dither, the faults and the sensor noise "
+                   "(default: %(default)s)")
+    r.add_argument("--store", metavar="PATH",
+                   help="SQLite history file (default: DIR/history.sqlite)")
+    r.add_argument("--no-resume", action="store_true",
+                   help="start a new run even if the store holds an unfinished one")
+    r.add_argument("--no-static", action="store_true",
+                   help="skip the static-twin comparison (updates disabled)")
+    r.add_argument("--no-plots", action="store_true", help="write no plots")
+    r.add_argument("--no-progress", action="store_true",
+                   help="no live progress display (it is shown only on a terminal anyway)")
+    r.add_argument("--out", required=True, metavar="DIR",
+                   help="folder for metrics.json, report.md, the plots and the history")
+    r.add_argument("--json", action="store_true",
+                   help="print metrics.json to stdout instead of the one-line summary")
+    r.set_defaults(run=run)
+
+
+def _parse_drift(text: str | None, duration: float) -> tuple[float, tuple[float, ...]]:
+    if text is None:
+        return 0.0, ()
+    value, _, times = text.partition("@")
+    try:
+        drift = float(value)
+    except ValueError:
+        raise CLIError(
+            f"--drift must be FRACTION or FRACTION@T1,T2 (e.g. 0.4@30,60), got {text!r}"
+        ) from None
+    if not (math.isfinite(drift) and -0.9 < drift < 0.9):
+        raise CLIError(f"--drift must be a fraction in (-0.9, 0.9), got {drift:g}")
+    if times:
+        try:
+            events = tuple(float(x) for x in times.split(",") if x.strip())
+        except ValueError:
+            raise CLIError(f"--drift: cannot read the event times in {text!r}") from None
+        if not events or any(not (0 < e < duration) for e in events):
+            raise CLIError(f"--drift: event times must lie inside the run (0, {duration:g}) s")
+    else:
+        events = (duration / 3.0, 2.0 * duration / 3.0)
+    return drift, tuple(sorted(events))
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the ``twin run`` command.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        Parsed flags.
+
+    Returns
+    -------
+    int
+        Exit status (0).
+    """
+    from ..twin.plants import Clock
+    from ..twin.report import compute_metrics, write_report
+    from ..twin.runtime import DigitalTwin, TwinConfig, make_plant
+
+    if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
+        raise CLIError(f"--duration must be a positive number of seconds, got {args.duration:g}")
+    if args.speedup is not None and not (math.isfinite(args.speedup) and args.speedup > 0):
+        raise CLIError(f"--speedup must be a positive factor, got {args.speedup:g}")
+    kind = args.plant.partition(":")[0].strip().lower()
+    if kind not in ("hydraulic", "tclab", "replay"):
+        raise CLIError(f"--plant must be hydraulic, tclab or replay:FILE, got {args.plant!r}")
+    if kind != "hydraulic" and args.drift is not None:
+        raise CLIError("--drift applies to the hydraulic plant only")
+    if kind == "replay" and args.setpoints is not None:
+        raise CLIError("--setpoints do not apply to a replay (the record fixes the input)")
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise CLIError(f"--out {args.out}: exists and is not a directory")
+    store = Path(args.store) if args.store else out / "history.sqlite"
+    if kind != "replay":
+        duration = args.duration if args.duration is not None else TwinConfig.for_plant(
+            kind, quick=args.quick).duration
+    else:
+        duration = args.duration if args.duration is not None else math.inf
+    drift, events = _parse_drift(args.drift, duration)
+    plant = make_plant(args.plant, drift=drift, drift_events=events, seed=args.seed)
+    config = TwinConfig.for_plant(
+        plant, duration=args.duration, setpoints=args.setpoints, quick=args.quick,
+        seed=args.seed, faults=args.faults, drift_events=events,
+        static_twin=not args.no_static,
+    )
+    if events and events[0] <= config.ident_duration:
+        raise CLIError(
+            f"--drift: the first event ({events[0]:g} s) falls inside the identification phase "
+            f"(first {config.ident_duration:g} s)"
+        )
+    clock = Clock.real_time(args.speedup, tolerance=config.dt) if args.speedup else None
+    out.mkdir(parents=True, exist_ok=True)
+    if not store.parent.is_dir():
+        raise CLIError(f"--store {store}: directory {str(store.parent)!r} does not exist")
+    twin = DigitalTwin(plant, config, history=store, clock=clock)
+    try:
+        try:
+            result = twin.run(resume=not args.no_resume,
+                              progress=False if args.no_progress else None)
+        except KeyboardInterrupt:
+            if twin.run_id is not None:
+                twin.finish()  # commits what is pending; the run stays resumable
+            raise
+        command = "kautztwin " + " ".join(shlex.quote(a) for a in sys.argv[1:]) if (
+            sys.argv and Path(sys.argv[0]).name in ("kautztwin", "__main__.py")) else None
+        paths = write_report(result, out, command=command, plots=not args.no_plots)
+    finally:
+        twin.close()
+    metrics = compute_metrics(result) if args.json else json.loads(
+        paths["metrics"].read_text(encoding="utf-8"))
+    if args.json:
+        print_json(metrics)
+        return 0
+    sys.stdout.write(_summary(metrics, out, len(paths) - 2) + "\n")
+    return 0
+
+
+def _f(x: Any, unit: str = "", digits: int = 1) -> str:
+    return "n/a" if x is None else f"{x:.{digits}f}{unit}"
+
+
+def _summary(m: dict[str, Any], out: Path, n_plots: int) -> str:
+    parts = [f"twin run {m['plant_name']}: {m['n_samples']} samples"]
+    if m["resume"].get("resumed"):
+        parts[0] += f" (resumed after {m['resume']['resume_k']})"
+    parts.append(f"sync fit mean {_f(m['sync_fit_mean'], ' %')}"
+                 + (f" (static twin {_f(m['static_twin_sync_fit_mean'], ' %')})"
+                    if m.get("static_twin_sync_fit_mean") is not None else ""))
+    if m["drift_events_s"]:
+        parts.append(f"min {_f(m['sync_fit_min_after_recovery'], ' %')} outside "
+                     f"{m['recovery_window_s']:g} s recovery windows")
+    parts.append(f"{m['reidentifications']} re-identifications")
+    if m.get("tracking_iae") is not None:
+        parts.append(f"tracking IAE {_f(m['tracking_iae'], '', 2)}, "
+                     f"{m['constraint_violations']} constraint violations")
+    parts.append(f"MPC {_f(m['mpc_solve_ms']['median'], ' ms', 3)}, "
+                 f"update {_f(m['update_ms']['median'], ' ms', 3)} (median)")
+    s = m["samples"]
+    if s["dropouts"] or s["outliers"] or s["late"]:
+        parts.append(f"{s['dropouts']} dropouts, {s['outliers']} outliers, {s['late']} late")
+    plots = f", {n_plots} plots" if n_plots else ""
+    return "; ".join(parts) + f"; wrote {out}/metrics.json, report.md{plots}"

@@ -1,0 +1,609 @@
+r"""Optimization module of the digital twin: offline re-tuning of the model and the controller.
+
+The update module (:class:`~kautztwin.twin.Updater`) keeps the twin
+synchronised sample by sample.  When it asks for more - a drift has been
+learnt (a ``'resync'`` event) or a new model version was accepted - the
+runtime hands the work to the :class:`Optimizer`, which
+
+* **re-optimises the basis poles** on the twin's recent behaviour: the live
+  fast-path model (which has followed the plant through the drift) is
+  compressed into a model of the original order with
+  :func:`kautztwin.optimize_poles` on its step response, and the candidate is
+  validated on held-out recent measurements by the updater before it
+  replaces the running model (:meth:`Optimizer.retune_model`);
+* **consolidates the fast path** into a new model version when its live
+  coefficients predict recent data clearly better than the current version
+  (:meth:`Optimizer.consolidate`);
+* **retunes the MPC weights** for a model version by small closed-loop
+  simulations on the model itself and on gain-perturbed copies, and
+  validates the winner (zero constraint violations, all solves successful,
+  settled within the horizon, bounded overshoot) before the controller is
+  rebuilt (:meth:`Optimizer.tune_controller`).
+
+:class:`MPCSettings` holds the controller design (horizon, Laguerre basis of
+the increments, weights and the plant's limits); :func:`build_mpc` turns a
+model and the settings into a :class:`~kautztwin.mpc.MPCProblem`.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from ..approx.model import KautzModel
+from ..exceptions import DataError
+from ..mpc import MPCProblem, simulate_closed_loop
+from .update import ModelUpdate, RecursiveKautzEstimator, Updater
+
+__all__ = [
+    "ControllerTuning",
+    "MPCSettings",
+    "Optimizer",
+    "TuningCandidate",
+    "build_mpc",
+]
+
+
+def _finite(value: Any, name: str) -> float:
+    try:
+        x = float(value)
+    except (TypeError, ValueError):
+        raise DataError(f"{name} must be a number, got {value!r}") from None
+    if math.isnan(x):
+        raise DataError(f"{name} must be a number, got NaN")
+    return x
+
+
+# --------------------------------------------------------------------------- settings
+@dataclass(frozen=True)
+class MPCSettings:
+    r"""Design of the twin's Laguerre MPC and the plant's limits.
+
+    The controller plans the increments of its command ``v`` on a discrete
+    Laguerre basis (``laguerre_pole``, ``n_functions``) over ``horizon``
+    samples.  The plant receives ``u = v + d``, where ``d`` is the excitation
+    dither of amplitude ``dither`` (zero for none); the controller's limits
+    are therefore the plant's limits tightened by the dither,
+
+    .. math::
+
+        u_{min} + a \le v \le u_{max} - a,\qquad |\Delta v| \le \Delta u_{max} - 2a,
+
+    so the applied input meets the plant's limits whatever the dither does.
+
+    Parameters
+    ----------
+    horizon : int
+        Prediction horizon ``N_p`` in samples.
+    laguerre_pole : float
+        Pole ``a`` of the discrete Laguerre basis of the increments, ``0 <= a < 1``.
+    n_functions : int
+        Number of Laguerre functions (decision variables).
+    r : float
+        Weight on the command increments (the output weight is 1).
+    u_min, u_max : float
+        Input limits of the plant.
+    du_max : float
+        Largest input change per sample of the plant (symmetric rate limit).
+    y_min, y_max : float, default=-inf, inf
+        Output limits (soft in the QP: relaxed to the least violation when infeasible).
+    dither : float, default=0.0
+        Amplitude of the excitation dither added to the command.
+    n_dense : int, default=20
+        The limits are imposed at the first ``n_dense`` steps of the horizon ...
+    sparse_every : int, default=5
+        ... and at every ``sparse_every``-th step after them (fewer rows, same behaviour).
+
+    Raises
+    ------
+    DataError
+        If a value is out of range or the dither leaves no room for the command.
+
+    See Also
+    --------
+    build_mpc : Build the problem for a model.
+    kautztwin.mpc.MPCProblem : The QP.
+
+    Examples
+    --------
+    >>> from kautztwin.twin.optimize import MPCSettings
+    >>> s = MPCSettings(50, 0.8, 4, 1.0, u_min=0.0, u_max=1.0, du_max=0.1, dither=0.02)
+    >>> s.controller_limits()["u_max"], round(s.controller_limits()["du_max"], 6)
+    (0.98, 0.06)
+    """
+
+    horizon: int
+    laguerre_pole: float
+    n_functions: int
+    r: float
+    u_min: float
+    u_max: float
+    du_max: float
+    y_min: float = -math.inf
+    y_max: float = math.inf
+    dither: float = 0.0
+    n_dense: int = 20
+    sparse_every: int = 5
+
+    def __post_init__(self) -> None:
+        for name in ("horizon", "n_functions", "n_dense", "sparse_every"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int | np.integer) or v < 1:
+                raise DataError(f"{name} must be a positive integer, got {v!r}")
+            object.__setattr__(self, name, int(v))
+        for name in ("laguerre_pole", "r", "u_min", "u_max", "du_max", "y_min", "y_max", "dither"):
+            object.__setattr__(self, name, _finite(getattr(self, name), name))
+        if not 0.0 <= self.laguerre_pole < 1.0:
+            raise DataError(f"laguerre_pole must lie in [0, 1), got {self.laguerre_pole}")
+        if not self.r > 0:
+            raise DataError(f"r must be > 0, got {self.r}")
+        finite = math.isfinite(self.u_min) and math.isfinite(self.u_max)
+        if not (finite and self.u_min < self.u_max):
+            raise DataError(f"need finite u_min < u_max, got {self.u_min} and {self.u_max}")
+        if not self.y_min < self.y_max:
+            raise DataError(f"need y_min < y_max, got {self.y_min} and {self.y_max}")
+        if self.dither < 0:
+            raise DataError(f"dither must be >= 0, got {self.dither}")
+        if not self.du_max > 2 * self.dither:
+            raise DataError(
+                f"du_max = {self.du_max:g} must exceed twice the dither amplitude "
+                f"({2 * self.dither:g}) to leave the controller a rate"
+            )
+        if not self.u_max - self.u_min > 2 * self.dither:
+            raise DataError(
+                f"the input range [{self.u_min:g}, {self.u_max:g}] is too narrow for a dither of "
+                f"{self.dither:g}"
+            )
+
+    def controller_limits(self) -> dict[str, float]:
+        """Limits of the controller's command: the plant's, tightened by the dither.
+
+        Returns
+        -------
+        dict
+            Keys ``u_min``, ``u_max``, ``du_min``, ``du_max``, ``y_min``, ``y_max``.
+        """
+        a = self.dither
+        du = self.du_max - 2 * a
+        return {
+            "u_min": self.u_min + a, "u_max": self.u_max - a, "du_min": -du, "du_max": du,
+            "y_min": self.y_min, "y_max": self.y_max,
+        }
+
+    def constraint_steps(self) -> NDArray[np.int64]:
+        """Horizon steps at which the limits are imposed.
+
+        Returns
+        -------
+        ndarray of int
+        """
+        n = min(self.n_dense, self.horizon)
+        return np.unique(
+            np.concatenate([np.arange(n), np.arange(n, self.horizon, self.sparse_every)])
+        ).astype(np.int64)
+
+    def with_weight(self, r: float) -> MPCSettings:
+        """The same design with another increment weight.
+
+        Parameters
+        ----------
+        r : float
+
+        Returns
+        -------
+        MPCSettings
+        """
+        return replace(self, r=float(r))
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready dictionary (infinite limits as ``None``).
+
+        Returns
+        -------
+        dict
+        """
+        out: dict[str, Any] = {}
+        for name in self.__dataclass_fields__:
+            v = getattr(self, name)
+            out[name] = None if isinstance(v, float) and not math.isfinite(v) else v
+        return out
+
+
+def build_mpc(
+    model: KautzModel, settings: MPCSettings, *, u_shift: float = 0.0, y_shift: float = 0.0
+) -> MPCProblem:
+    """Build the twin's MPC problem for a model (once; it is re-solved every sample).
+
+    Parameters
+    ----------
+    model : KautzModel
+        Prediction model on a delayed discrete basis (``y = c^T x_f``).
+    settings : MPCSettings
+        Design and limits.
+    u_shift, y_shift : float, default=0.0
+        Subtracted from the input and output limits (to simulate in deviation
+        coordinates around an operating point).
+
+    Returns
+    -------
+    MPCProblem
+
+    Examples
+    --------
+    >>> import kautztwin as kt
+    >>> from kautztwin.twin.optimize import MPCSettings, build_mpc
+    >>> model = kt.KautzModel(kt.KautzBasis([0.9], dt=0.1, delayed=True), [1.0])
+    >>> s = MPCSettings(30, 0.7, 3, 0.1, u_min=-1.0, u_max=1.0, du_max=0.5)
+    >>> build_mpc(model, s).n_variables
+    3
+    """
+    lim = settings.controller_limits()
+    return MPCProblem(
+        model, (settings.laguerre_pole, settings.n_functions), settings.horizon,
+        r=settings.r, u_min=lim["u_min"] - u_shift, u_max=lim["u_max"] - u_shift,
+        du_min=lim["du_min"], du_max=lim["du_max"],
+        y_min=lim["y_min"] - y_shift, y_max=lim["y_max"] - y_shift,
+        constraint_steps=settings.constraint_steps(),
+    )
+
+
+# --------------------------------------------------------------------------- results
+@dataclass(frozen=True)
+class TuningCandidate:
+    """One weight tried by :meth:`Optimizer.tune_controller`.
+
+    Parameters
+    ----------
+    r : float
+        Increment weight.
+    score : float
+        Mean normalised IAE over the simulated plants (lower is better; inf if invalid).
+    valid : bool
+        Whether every validation check passed.
+    violations : int
+        Constraint violations over all simulations.
+    overshoot : float
+        Overshoot of the nominal simulation, fraction of the step.
+    final_error : float
+        Final tracking error of the nominal simulation, fraction of the step.
+    reason : str
+        Why it is invalid ('' when valid).
+    """
+
+    r: float
+    score: float
+    valid: bool
+    violations: int
+    overshoot: float
+    final_error: float
+    reason: str = ""
+
+
+@dataclass(frozen=True)
+class ControllerTuning:
+    """Outcome of :meth:`Optimizer.tune_controller`.
+
+    Parameters
+    ----------
+    accepted : bool
+        Whether a candidate passed the validation (the controller may be rebuilt).
+    settings : MPCSettings
+        The chosen design (the input design when nothing was accepted).
+    candidates : tuple of TuningCandidate
+        Every weight tried.
+    reason : str
+        Summary in words.
+    elapsed : float
+        Wall-clock seconds.
+    """
+
+    accepted: bool
+    settings: MPCSettings
+    candidates: tuple[TuningCandidate, ...] = field(default=())
+    reason: str = ""
+    elapsed: float = 0.0
+
+    def payload(self) -> dict[str, Any]:
+        """JSON-ready summary (for the history store).
+
+        Returns
+        -------
+        dict
+        """
+        return {
+            "accepted": self.accepted, "r": self.settings.r, "reason": self.reason,
+            "elapsed": self.elapsed,
+            "candidates": [
+                {"r": c.r, "score": c.score if math.isfinite(c.score) else None,
+                 "valid": c.valid, "reason": c.reason}
+                for c in self.candidates
+            ],
+        }
+
+
+# --------------------------------------------------------------------------- optimizer
+class Optimizer:
+    r"""Offline re-tuning for the twin: basis poles, model consolidation, MPC weights.
+
+    Parameters
+    ----------
+    weight_factors : sequence of float, default=(0.2, 1.0, 5.0)
+        Multiples of the configured increment weight tried by
+        :meth:`tune_controller`.
+    gain_margins : sequence of float, default=(1.0, 0.75, 1.35)
+        Gain factors of the plants each candidate is simulated on (1 is the
+        model itself; the others stand for a drifted plant).
+    n_settle : int or None, default=None
+        Samples of each tuning simulation; ``2 * horizon`` when omitted.
+    max_overshoot : float, default=0.25
+        Largest overshoot on the nominal model, fraction of the step.
+    max_final_error : float, default=0.05
+        Largest error at the end of the nominal simulation, fraction of the step.
+    min_gain : float, default=1.0
+        Fit percent by which the live fast-path model must beat the current
+        version in :meth:`consolidate`.
+    validation_samples : int, default=300
+        Recent samples on which :meth:`consolidate` compares the two models.
+    max_step_samples : int, default=2000
+        Longest virtual step test of :meth:`retune_model`.
+    retune_poles : bool, default=True
+        Run the pole re-optimisation in :meth:`retune_model`.
+
+    See Also
+    --------
+    kautztwin.twin.Updater.update_from_step_test : Validates a pole re-optimisation.
+    kautztwin.optimize_poles : The pole optimisation.
+    build_mpc : The controller that is tuned.
+
+    Notes
+    -----
+    **Weight tuning.**  For each candidate weight :math:`r` the MPC is built
+    on the model in deviation coordinates around the current operating point
+    and a set-point step of the size the run uses is simulated in closed loop
+    (:func:`kautztwin.mpc.simulate_closed_loop`) on the model and on copies
+    with their gain scaled by ``gain_margins``.  The score is the mean IAE
+    normalised by the step; a candidate is valid when no simulation breaks a
+    limit or fails a solve and the nominal response overshoots by at most
+    ``max_overshoot`` and ends within ``max_final_error`` of the set-point.
+    The valid candidate with the lowest score wins.
+
+    Examples
+    --------
+    >>> import kautztwin as kt
+    >>> from kautztwin.twin.optimize import MPCSettings, Optimizer
+    >>> model = kt.KautzModel(kt.KautzBasis([0.9], dt=0.1, delayed=True), [1.0])
+    >>> s = MPCSettings(30, 0.7, 3, 0.1, u_min=-1.0, u_max=1.0, du_max=0.5)
+    >>> tuning = Optimizer().tune_controller(model, s, step=0.5)
+    >>> tuning.accepted, len(tuning.candidates)
+    (True, 3)
+    """
+
+    def __init__(
+        self,
+        *,
+        weight_factors: ArrayLike = (0.2, 1.0, 5.0),
+        gain_margins: ArrayLike = (1.0, 0.75, 1.35),
+        n_settle: int | None = None,
+        max_overshoot: float = 0.25,
+        max_final_error: float = 0.05,
+        min_gain: float = 1.0,
+        validation_samples: int = 300,
+        max_step_samples: int = 2000,
+        retune_poles: bool = True,
+    ) -> None:
+        self.weight_factors = tuple(float(f) for f in np.atleast_1d(weight_factors))
+        self.gain_margins = tuple(float(g) for g in np.atleast_1d(gain_margins))
+        if not self.weight_factors or any(not f > 0 for f in self.weight_factors):
+            raise DataError(f"weight_factors must be positive numbers, got {weight_factors!r}")
+        if not self.gain_margins or any(not g > 0 for g in self.gain_margins):
+            raise DataError(f"gain_margins must be positive numbers, got {gain_margins!r}")
+        self.n_settle = n_settle
+        self.max_overshoot = float(max_overshoot)
+        self.max_final_error = float(max_final_error)
+        self.min_gain = float(min_gain)
+        self.validation_samples = int(validation_samples)
+        self.max_step_samples = int(max_step_samples)
+        self.retune_poles = bool(retune_poles)
+
+    # ------------------------------------------------------------------ controller
+    def tune_controller(
+        self,
+        model: KautzModel,
+        settings: MPCSettings,
+        *,
+        step: float,
+        u_op: float | None = None,
+        y_op: float = 0.0,
+    ) -> ControllerTuning:
+        """Retune the increment weight by closed-loop simulation and validate the winner.
+
+        Parameters
+        ----------
+        model : KautzModel
+            The model version the controller will run on (delayed discrete basis).
+        settings : MPCSettings
+            The design; its ``r`` is the base of ``weight_factors``.
+        step : float
+            Set-point step to simulate (output units, nonzero).
+        u_op : float, optional
+            Current command: the limits are taken relative to it (mid-range when omitted).
+        y_op : float, default=0.0
+            Current output (for the output limits).
+
+        Returns
+        -------
+        ControllerTuning
+        """
+        start = time.perf_counter()
+        step = _finite(step, "step")
+        if step == 0:
+            raise DataError("step must be nonzero")
+        lim = settings.controller_limits()
+        if u_op is None:
+            u_op = 0.5 * (lim["u_min"] + lim["u_max"])
+        u_op = float(np.clip(u_op, lim["u_min"], lim["u_max"]))
+        n = int(self.n_settle) if self.n_settle is not None else 2 * settings.horizon
+        candidates = []
+        for f in self.weight_factors:
+            cand = settings.with_weight(settings.r * f)
+            candidates.append(self._evaluate(model, cand, step, u_op, float(y_op), n))
+        valid = [c for c in candidates if c.valid]
+        elapsed = time.perf_counter() - start
+        if not valid:
+            reasons = "; ".join(f"r={c.r:g}: {c.reason}" for c in candidates)
+            return ControllerTuning(
+                False, settings, tuple(candidates), f"no weight passed the validation ({reasons})",
+                elapsed,
+            )
+        best = min(valid, key=lambda c: c.score)
+        return ControllerTuning(
+            True, settings.with_weight(best.r), tuple(candidates),
+            f"r = {best.r:g} (normalised IAE {best.score:.3g}, overshoot "
+            f"{100 * best.overshoot:.1f} %) of {len(valid)}/{len(candidates)} valid weights",
+            elapsed,
+        )
+
+    def _evaluate(
+        self, model: KautzModel, settings: MPCSettings, step: float, u_op: float, y_op: float,
+        n: int,
+    ) -> TuningCandidate:
+        try:
+            problem = build_mpc(model, settings, u_shift=u_op, y_shift=y_op)
+        except (DataError, ValueError, np.linalg.LinAlgError) as exc:
+            return TuningCandidate(settings.r, math.inf, False, 0, math.nan, math.nan, str(exc))
+        dt = model.dt
+        scores, violations, failed = [], 0, 0
+        overshoot = final = math.nan
+        for g in self.gain_margins:
+            plant = model if g == 1.0 else KautzModel(model.basis, model.coefficients * g)
+            res = simulate_closed_loop(plant, problem, np.full(n, step), u0=0.0)
+            violations += res.violations
+            failed += res.n_failed
+            y = np.asarray(res.y, dtype=float)
+            scores.append(float(np.sum(np.abs(y[1:] - step))) * dt / abs(step))
+            if g == 1.0:
+                overshoot = max(0.0, float(np.max(y * np.sign(step))) / abs(step) - 1.0)
+                final = abs(float(y[-1]) - step) / abs(step)
+        reason = ""
+        if violations:
+            reason = f"{violations} constraint violations"
+        elif failed:
+            reason = f"{failed} failed solves"
+        elif overshoot > self.max_overshoot:
+            reason = f"overshoot {100 * overshoot:.1f} % > {100 * self.max_overshoot:g} %"
+        elif final > self.max_final_error:
+            reason = f"final error {100 * final:.1f} % of the step"
+        ok = not reason
+        return TuningCandidate(
+            settings.r, float(np.mean(scores)) if ok else math.inf, ok, violations, overshoot,
+            final, reason,
+        )
+
+    # ------------------------------------------------------------------ model
+    def retune_model(self, updater: Updater) -> ModelUpdate | None:
+        """Re-optimise the basis poles on the twin's recent behaviour (validated).
+
+        The live fast-path model of ``updater`` (which has followed the plant)
+        runs a virtual step test from rest; :func:`kautztwin.optimize_poles`
+        fits a model of the current order to it, starting from the current
+        poles, and :meth:`Updater.update_from_step_test` validates the
+        candidate on held-out recent measurements before it replaces the
+        running model.
+
+        Parameters
+        ----------
+        updater : Updater
+            The twin's update module.
+
+        Returns
+        -------
+        ModelUpdate or None
+            The attempt (``None`` when pole re-optimisation is switched off).
+        """
+        if not self.retune_poles:
+            return None
+        est = updater.estimator_
+        basis = est.basis_
+        rates = -np.log(np.maximum(np.abs(basis.poles), 1e-12)) / updater.dt
+        slowest = float(np.min(rates)) if rates.size else 1.0
+        n = int(np.clip(8.0 / (slowest * updater.dt), 50, self.max_step_samples))
+        u0 = updater.input_offset
+        y = est.simulate(np.full(n, u0 + 1.0))
+        try:
+            return updater.update_from_step_test(y, amplitude=1.0, u0=u0, y0=est.offset_)
+        except (DataError, ValueError, np.linalg.LinAlgError):
+            return None
+
+    def consolidate(
+        self,
+        updater: Updater,
+        current: KautzModel,
+        current_offset: float,
+        u: ArrayLike,
+        y: ArrayLike,
+    ) -> tuple[bool, float, float]:
+        """Whether the live fast-path model predicts recent data better than the current version.
+
+        Both models are simulated from rest over the recent input history
+        ``u`` (the early part settles their filters) and compared on the last
+        ``validation_samples`` finite outputs.
+
+        Parameters
+        ----------
+        updater : Updater
+            The twin's update module (its live model and offset).
+        current : KautzModel
+            The current version's model (delayed discrete basis).
+        current_offset : float
+            Its output offset.
+        u, y : array-like of shape (n_samples,)
+            Recent applied inputs and measured outputs (NaN where not usable).
+
+        Returns
+        -------
+        better : bool
+            The live model's fit exceeds the current one's by ``min_gain``.
+        fit_live, fit_current : float
+            Fit percent of each on the validation samples.
+        """
+        u = np.asarray(u, dtype=float)
+        y = np.asarray(y, dtype=float)
+        n_val = min(self.validation_samples, u.size // 2)
+        if n_val < 20 or not np.all(np.isfinite(u)):
+            return False, math.nan, math.nan
+        est = updater.estimator_
+        u0 = updater.input_offset
+        live = est.simulate(u)
+        cur = RecursiveKautzEstimator(
+            current.basis, dt=updater.dt, coef_init=current.coefficients,
+            offset_init=current_offset, input_offset=u0,
+        ).simulate(u)
+        yy = y[-n_val:]
+        f_live = _fit(yy, live[-n_val:])
+        f_cur = _fit(yy, cur[-n_val:])
+        better = math.isfinite(f_live) and (
+            not math.isfinite(f_cur) or f_live > f_cur + self.min_gain
+        )
+        return better, f_live, f_cur
+
+    def __repr__(self) -> str:
+        return (
+            f"Optimizer(weight_factors={self.weight_factors}, gain_margins={self.gain_margins}, "
+            f"retune_poles={self.retune_poles})"
+        )
+
+
+def _fit(y: NDArray, yhat: NDArray) -> float:
+    ok = np.isfinite(y) & np.isfinite(yhat)
+    if ok.sum() < 2:
+        return math.nan
+    yy = y[ok]
+    spread = float(np.linalg.norm(yy - yy.mean()))
+    if spread == 0.0:
+        return math.nan
+    return 100.0 * (1.0 - float(np.linalg.norm(yy - yhat[ok])) / spread)
