@@ -42,7 +42,7 @@ from ..exceptions import (
     NotFittedError,
 )
 from ..metrics import fit_percent
-from .estimator import _canonical, _grid_hash, _sha256_file
+from .estimator import _canonical, _grid_hash, _load_verified, _sha256_file
 from .kautz_torch import (
     block_poles,
     kautz_functions,
@@ -1431,47 +1431,9 @@ class AdaptivePoleEstimator:
             If a file is missing or unreadable, of another format or version,
             malformed, or modified after saving (checksum mismatch).
         """
-        directory = Path(directory)
-        meta_path = directory / _METADATA
-        weights_path = directory / _WEIGHTS
-        for path in (meta_path, weights_path):
-            if not path.is_file():
-                raise DataError(f"model file {str(path)!r} does not exist")
-        try:
-            meta = json.loads(meta_path.read_text(encoding="utf-8"))
-        except (OSError, UnicodeDecodeError, ValueError) as exc:
-            msg = " ".join(str(exc).split())
-            raise DataError(f"cannot read model file {str(meta_path)!r}: {msg}") from None
-        if not isinstance(meta, dict) or meta.get("format") != _FORMAT:
-            raise DataError(f"{str(meta_path)!r} is not a kautztwin AdaptivePoleEstimator file")
-        if meta.get("format_version") != _FORMAT_VERSION:
-            raise DataError(
-                f"model file {str(meta_path)!r} has format version "
-                f"{meta.get('format_version')!r}; this kautztwin reads version {_FORMAT_VERSION}"
-            )
-        try:
-            expected = hashlib.sha256(_canonical(meta)).hexdigest()
-        except ValueError:
-            expected = ""
-        if meta.get("metadata_sha256") != expected:
-            raise DataError(f"model file {str(meta_path)!r} was modified (checksum mismatch)")
-        try:
-            weights_sha = meta["weights"]["sha256"]
-        except (KeyError, TypeError):
-            raise DataError(
-                f"model file {str(meta_path)!r} is malformed: no weights checksum"
-            ) from None
-        if _sha256_file(weights_path) != weights_sha:
-            raise DataError(f"model file {str(weights_path)!r} was modified (checksum mismatch)")
-        try:
-            return cls._from_files(meta, weights_path)
-        except KautzTwinError as exc:
-            raise DataError(f"model {str(directory)!r} is malformed: {exc}") from None
-        except (KeyError, TypeError, ValueError, RuntimeError, OSError) as exc:
-            msg = " ".join(str(exc).split())[:300]
-            raise DataError(
-                f"model {str(directory)!r} is malformed: {type(exc).__name__}: {msg}"
-            ) from None
+        return _load_verified(
+            directory, _FORMAT, _FORMAT_VERSION, "AdaptivePoleEstimator", cls._from_files
+        )
 
     @classmethod
     def _from_files(cls, meta: dict[str, Any], weights_path: Path) -> AdaptivePoleEstimator:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -59,6 +59,61 @@ def _child_seed(random_state: int, k: int) -> int:
 
 def _mse(module: torch.nn.Module, batch: tuple[torch.Tensor, ...]) -> torch.Tensor:
     return torch.nn.functional.mse_loss(module(batch[0]), batch[1])
+
+
+def _load_verified(
+    directory: str | Path,
+    fmt: str,
+    version: int,
+    label: str,
+    from_files: Callable[[dict[str, Any], Path], Any],
+) -> Any:
+    """Read a model folder, verify format, version and both checksums, then build the model.
+
+    Shared by every estimator that saves ``metadata.json`` + ``weights.pt``; any
+    problem is a one-line :class:`DataError`.
+    """
+    directory = Path(directory)
+    meta_path = directory / _METADATA
+    weights_path = directory / _WEIGHTS
+    for path in (meta_path, weights_path):
+        if not path.is_file():
+            raise DataError(f"model file {str(path)!r} does not exist")
+    try:
+        meta = json.loads(meta_path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        msg = " ".join(str(exc).split())
+        raise DataError(f"cannot read model file {str(meta_path)!r}: {msg}") from None
+    if not isinstance(meta, dict) or meta.get("format") != fmt:
+        raise DataError(f"{str(meta_path)!r} is not a kautztwin {label} file")
+    if meta.get("format_version") != version:
+        raise DataError(
+            f"model file {str(meta_path)!r} has format version "
+            f"{meta.get('format_version')!r}; this kautztwin reads version {version}"
+        )
+    try:
+        expected = hashlib.sha256(_canonical(meta)).hexdigest()
+    except ValueError:
+        expected = ""
+    if meta.get("metadata_sha256") != expected:
+        raise DataError(f"model file {str(meta_path)!r} was modified (checksum mismatch)")
+    try:
+        weights_sha = meta["weights"]["sha256"]
+    except (KeyError, TypeError):
+        raise DataError(
+            f"model file {str(meta_path)!r} is malformed: no weights checksum"
+        ) from None
+    if _sha256_file(weights_path) != weights_sha:
+        raise DataError(f"model file {str(weights_path)!r} was modified (checksum mismatch)")
+    try:
+        return from_files(meta, weights_path)
+    except KautzTwinError as exc:
+        raise DataError(f"model {str(directory)!r} is malformed: {exc}") from None
+    except (KeyError, TypeError, ValueError, RuntimeError, OSError) as exc:
+        msg = " ".join(str(exc).split())[:300]
+        raise DataError(
+            f"model {str(directory)!r} is malformed: {type(exc).__name__}: {msg}"
+        ) from None
 
 
 class CoefficientEstimator:
@@ -235,9 +290,11 @@ class CoefficientEstimator:
                 f"{type(dataset).__name__}"
             )
         config = self._resolve_config()
-        if not isinstance(self.random_state, (int, np.integer)) or isinstance(
-            self.random_state, bool
-        ) or self.random_state < 0:
+        if (
+            not isinstance(self.random_state, (int, np.integer))
+            or isinstance(self.random_state, bool)
+            or self.random_state < 0
+        ):
             raise DataError(
                 f"random_state must be a non-negative integer, got {self.random_state!r}"
             )
@@ -569,47 +626,9 @@ class CoefficientEstimator:
             If a file is missing or unreadable, of another format version,
             malformed, or was modified after saving (checksum mismatch).
         """
-        directory = Path(directory)
-        meta_path = directory / _METADATA
-        weights_path = directory / _WEIGHTS
-        for path in (meta_path, weights_path):
-            if not path.is_file():
-                raise DataError(f"model file {str(path)!r} does not exist")
-        try:
-            meta = json.loads(meta_path.read_text(encoding="utf-8"))
-        except (OSError, UnicodeDecodeError, ValueError) as exc:
-            msg = " ".join(str(exc).split())
-            raise DataError(f"cannot read model file {str(meta_path)!r}: {msg}") from None
-        if not isinstance(meta, dict) or meta.get("format") != _FORMAT:
-            raise DataError(f"{str(meta_path)!r} is not a kautztwin CoefficientEstimator file")
-        if meta.get("format_version") != _FORMAT_VERSION:
-            raise DataError(
-                f"model file {str(meta_path)!r} has format version "
-                f"{meta.get('format_version')!r}; this kautztwin reads version {_FORMAT_VERSION}"
-            )
-        try:
-            expected = hashlib.sha256(_canonical(meta)).hexdigest()
-        except ValueError:
-            expected = ""
-        if meta.get("metadata_sha256") != expected:
-            raise DataError(f"model file {str(meta_path)!r} was modified (checksum mismatch)")
-        try:
-            weights_sha = meta["weights"]["sha256"]
-        except (KeyError, TypeError):
-            raise DataError(
-                f"model file {str(meta_path)!r} is malformed: no weights checksum"
-            ) from None
-        if _sha256_file(weights_path) != weights_sha:
-            raise DataError(f"model file {str(weights_path)!r} was modified (checksum mismatch)")
-        try:
-            return cls._from_files(meta, weights_path)
-        except KautzTwinError as exc:
-            raise DataError(f"model {str(directory)!r} is malformed: {exc}") from None
-        except (KeyError, TypeError, ValueError, RuntimeError, OSError) as exc:
-            msg = " ".join(str(exc).split())[:300]
-            raise DataError(
-                f"model {str(directory)!r} is malformed: {type(exc).__name__}: {msg}"
-            ) from None
+        return _load_verified(
+            directory, _FORMAT, _FORMAT_VERSION, "CoefficientEstimator", cls._from_files
+        )
 
     @classmethod
     def _from_files(cls, meta: dict[str, Any], weights_path: Path) -> CoefficientEstimator:
