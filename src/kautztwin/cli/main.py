@@ -24,10 +24,11 @@ __all__ = ["build_parser", "main"]
 PROG = "kautztwin"
 
 DESCRIPTION = """\
-kautztwin: approximate dynamic systems on orthonormal Kautz functions.
+kautztwin: digital twins of dynamic systems on orthonormal Kautz functions and
+neural networks: approximation, identification, DNN estimators, MPC, the twin.
 
-Every command runs without data files: leave out DATA.csv and the built-in
-reference system G(s) = 6/((s+1)(s+3)(s^2+s+4)) of the paper is used.
+basis, approx and sensitivity run without data files: leave out DATA.csv and the
+built-in reference system G(s) = 6/((s+1)(s+3)(s^2+s+4)) of the paper is used.
 Poles are written as comma-separated numbers, e.g. "-1,-3,-0.5+1.9365j,-0.5-1.9365j";
 each complex pole is listed with its conjugate (or written a+-bj for both).
 """
@@ -38,6 +39,9 @@ examples:
   kautztwin approx --poles "-1,-3,-0.5+1.9365j,-0.5-1.9365j"
   kautztwin approx data.csv --time t --response y --kind step --optimize-poles 4 --json
   kautztwin sensitivity --poles "-1,-3,-0.5+-1.9365j" --out fig3.png
+  kautztwin identify run.csv --time Time --input Q1 --output T1 --kind step --order 2
+  kautztwin reproduce simulation --quick --out sim
+  kautztwin twin run --plant hydraulic --duration 90 --drift 0.4 --out twin
 
 exit status: 0 success, 1 unexpected failure, 2 bad input or usage.
 Run 'kautztwin COMMAND --help' for the flags of a command.
