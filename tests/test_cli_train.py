@@ -6,8 +6,7 @@ import json
 
 import numpy as np
 import pytest
-
-torch = pytest.importorskip("torch")  # the [nn] extra; installed by .ci/run
+import torch  # noqa: E402 - the [nn] extra, part of [test]
 
 from kautztwin.cli.main import main  # noqa: E402
 from kautztwin.data import reference_response  # noqa: E402

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import daqp  # noqa: E402 - a core dependency
 import numpy as np
 import pytest
 import scipy.linalg
@@ -24,8 +25,6 @@ from kautztwin.mpc import (
     simulate_closed_loop,
     solve_mpc,
 )
-
-daqp = pytest.importorskip("daqp")
 
 EPS = np.finfo(float).eps
 

@@ -7,8 +7,7 @@ import time
 
 import numpy as np
 import pytest
-
-torch = pytest.importorskip("torch")
+import torch  # noqa: E402 - the [nn] extra, part of [test]
 
 import kautztwin as kt  # noqa: E402
 from kautztwin.datasets import draw_parameters, make_dataset, paper_system  # noqa: E402

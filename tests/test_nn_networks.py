@@ -6,8 +6,7 @@ import subprocess
 import sys
 
 import pytest
-
-torch = pytest.importorskip("torch")
+import torch  # noqa: E402 - the [nn] extra, part of [test]
 
 from kautztwin.exceptions import DataError  # noqa: E402
 from kautztwin.nn import PaperNetwork, paper_parameter_count  # noqa: E402

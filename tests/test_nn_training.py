@@ -7,8 +7,7 @@ import warnings
 
 import numpy as np
 import pytest
-
-torch = pytest.importorskip("torch")
+import torch  # noqa: E402 - the [nn] extra, part of [test]
 
 from kautztwin.exceptions import ConvergenceWarning, DataError, DimensionError  # noqa: E402
 from kautztwin.nn import (  # noqa: E402

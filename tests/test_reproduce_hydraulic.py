@@ -7,8 +7,7 @@ import time
 
 import numpy as np
 import pytest
-
-pytest.importorskip("torch")
+import torch  # noqa: E402,F401 - the [nn] extra, part of [test]
 
 from kautztwin.cli.main import main  # noqa: E402
 from kautztwin.experiments import hydraulic  # noqa: E402
@@ -125,7 +124,6 @@ def test_cli_runs_the_study(capsys, tmp_path, monkeypatch):
                           paper_preset=False, n_test=10, structure_check=False)
     monkeypatch.setattr(hydraulic.HydraulicSetup, "quick", classmethod(lambda cls: tiny))
     out = tmp_path / "cli"
-    torch = pytest.importorskip("torch")
     before = torch.get_num_threads()
     code = main(["reproduce", "hydraulic", "--quick", "--quiet", "--out", str(out)])
     assert torch.get_num_threads() == before  # the study's one thread is not left behind

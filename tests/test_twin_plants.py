@@ -8,6 +8,7 @@ import warnings
 
 import numpy as np
 import pytest
+import tclab  # noqa: E402,F401 - the [tclab] extra, part of [test]
 
 from kautztwin.exceptions import DataError, DimensionError
 from kautztwin.plants import HydraulicServoDrive
@@ -24,8 +25,6 @@ from kautztwin.twin.plants import (
     run_open_loop,
     temperature_for_pole_ratio,
 )
-
-pytest.importorskip("tclab")
 
 
 def _steps(n: int, seed: int, lo: float, hi: float) -> np.ndarray:
@@ -181,7 +180,6 @@ def test_tclab_emulator_runs_faster_than_real_time():
 
 
 def test_tclab_plant_follows_the_tclab_model_exactly():
-    import tclab
 
     lab = TCLabPlant(dt=2.0, noise=0.0)
     u = _steps(50, seed=2, lo=0.0, hi=100.0)
