@@ -367,13 +367,13 @@ def _figures(out: Path, main: _Methods, test: ResponseDataset) -> None:
     from ..nn.plots import plot_history
     from ..plotting import _new_figure, save_figure
 
-    fig, axes = _new_figure(len(main.paper.histories_), panel_size=(4.0, 3.2))
+    fig, axes = _new_figure(len(main.paper.histories_), ncols=2, panel_size=(4.0, 3.2))
     for i, (ax, h) in enumerate(zip(np.ravel(axes), main.paper.histories_, strict=False)):
         plot_history(h, ax=ax)
         ax.set_title(f"network of c{i + 1} (paper preset)")
     save_figure(fig, out / "fig7_training.png")
 
-    fig, axes = _new_figure(4, panel_size=(4.5, 3.2))
+    fig, axes = _new_figure(4, ncols=2, panel_size=(4.5, 3.2))
     noisy = test.responses[:4]
     c_dnn = main.paper.predict(noisy)
     y_ad = main.adaptive.predict_responses(noisy)
