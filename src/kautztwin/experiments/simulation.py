@@ -400,7 +400,15 @@ def _sweep_figure(out: Path, sweep: list[dict]) -> None:
     im = ax.imshow(grid, aspect="auto", cmap="viridis", vmin=max(0.0, np.nanmin(grid)), vmax=100)
     for i in range(grid.shape[0]):
         for j in range(grid.shape[1]):
-            ax.text(j, i, f"{grid[i, j]:.1f}", ha="center", va="center", fontsize=7, color="w")
+            ax.text(
+                j,
+                i,
+                f"{grid[i, j]:.1f}",
+                ha="center",
+                va="center",
+                fontsize=7,
+                color="k" if grid[i, j] > 60 else "w",
+            )
     ax.set_yticks(range(len(methods)), methods)
     ax.set_xticks(range(len(cells)), [f"u{u:.0%}\nn{nz:.0%}" for u, nz in cells], fontsize=7)
     ax.set_title("mean fit % vs noise-free truth (u: uncertainty, n: noise)")
