@@ -42,7 +42,7 @@ from ..exceptions import (
     NotFittedError,
 )
 from ..metrics import fit_percent
-from .estimator import _canonical, _grid_hash, _load_verified, _sha256_file
+from .estimator import _canonical, _grid_hash, _load_verified, _ParamsMixin, _sha256_file
 from .kautz_torch import (
     block_poles,
     kautz_functions,
@@ -515,7 +515,7 @@ def _centre_from_kinds(
     return params
 
 
-class AdaptivePoleEstimator:
+class AdaptivePoleEstimator(_ParamsMixin):
     r"""Kautz models with record-specific poles: network poles, least-squares coefficients.
 
     The network (:class:`AdaptivePoleNetwork`) predicts the poles of the
@@ -697,22 +697,6 @@ class AdaptivePoleEstimator:
             "refine_max_iter": self.refine_max_iter,
             "pretrain_epochs": self.pretrain_epochs,
         }
-
-    def set_params(self, **params: Any) -> AdaptivePoleEstimator:
-        """Set constructor parameters (scikit-learn convention); returns ``self``."""
-        valid = self.get_params()
-        for key, value in params.items():
-            if key not in valid:
-                raise DataError(
-                    f"invalid parameter {key!r} for AdaptivePoleEstimator; "
-                    f"valid: {', '.join(sorted(valid))}"
-                )
-            setattr(self, key, value)
-        return self
-
-    def __repr__(self) -> str:
-        args = ", ".join(f"{k}={v!r}" for k, v in self.get_params().items() if v is not None)
-        return f"AdaptivePoleEstimator({args})"
 
     # ------------------------------------------------------------------ validation
     def _resolve_config(self) -> TrainingConfig:

@@ -116,7 +116,30 @@ def _load_verified(
         ) from None
 
 
-class CoefficientEstimator:
+class _ParamsMixin:
+    """``set_params`` and ``__repr__`` on top of a class's ``get_params`` (scikit-learn style)."""
+
+    def get_params(self, deep: bool = True) -> dict[str, Any]:  # pragma: no cover - overridden
+        raise NotImplementedError
+
+    def set_params(self, **params: Any) -> Any:
+        """Set constructor parameters (scikit-learn convention); returns ``self``."""
+        valid = self.get_params()
+        for key, value in params.items():
+            if key not in valid:
+                raise DataError(
+                    f"invalid parameter {key!r} for {type(self).__name__}; "
+                    f"valid: {', '.join(sorted(valid))}"
+                )
+            setattr(self, key, value)
+        return self
+
+    def __repr__(self) -> str:
+        args = ", ".join(f"{k}={v!r}" for k, v in self.get_params().items() if v is not None)
+        return f"{type(self).__name__}({args})"
+
+
+class CoefficientEstimator(_ParamsMixin):
     r"""Deep-network estimator of Kautz coefficients from a sampled noisy response.
 
     The paper's method: a :class:`~kautztwin.nn.PaperNetwork` maps the
@@ -231,22 +254,6 @@ class CoefficientEstimator:
             "progress": self.progress,
             "config": self.config,
         }
-
-    def set_params(self, **params: Any) -> CoefficientEstimator:
-        """Set constructor parameters (scikit-learn convention); returns ``self``."""
-        valid = self.get_params()
-        for key, value in params.items():
-            if key not in valid:
-                raise DataError(
-                    f"invalid parameter {key!r} for CoefficientEstimator; "
-                    f"valid: {', '.join(sorted(valid))}"
-                )
-            setattr(self, key, value)
-        return self
-
-    def __repr__(self) -> str:
-        args = ", ".join(f"{k}={v!r}" for k, v in self.get_params().items() if v is not None)
-        return f"CoefficientEstimator({args})"
 
     def _resolve_config(self) -> TrainingConfig:
         if isinstance(self.config, TrainingConfig):
