@@ -17,8 +17,6 @@ starts from the network's poles.
 from __future__ import annotations
 
 import functools
-import hashlib
-import json
 import math
 import warnings
 from collections.abc import Mapping, Sequence
@@ -42,7 +40,7 @@ from ..exceptions import (
     NotFittedError,
 )
 from ..metrics import fit_percent
-from .estimator import _canonical, _grid_hash, _load_verified, _ParamsMixin, _sha256_file
+from .estimator import _grid_hash, _load_verified, _ParamsMixin, _save_verified
 from .kautz_torch import (
     block_poles,
     kautz_functions,
@@ -1347,29 +1345,12 @@ class AdaptivePoleEstimator(_ParamsMixin):
         NotFittedError
             If the estimator is not fitted.
         """
-        from .. import __version__
-
         self._check_is_fitted()
-        directory = Path(directory)
-        directory.mkdir(parents=True, exist_ok=True)
-        weights = directory / _WEIGHTS
         state = {k: v.detach().cpu().contiguous() for k, v in self.network_.state_dict().items()}
-        torch.save(state, weights)
         net = self.network_
-        meta: dict[str, Any] = {
-            "format": _FORMAT,
-            "format_version": _FORMAT_VERSION,
-            "kautztwin_version": __version__,
-            "torch_version": torch.__version__,
+        fields: dict[str, Any] = {
             "kinds": list(self.kinds_),
             "centre_poles": [[float(p.real), float(p.imag)] for p in self.centre_poles_],
-            "time_grid": {
-                "t0": float(self.t_[0]),
-                "t_end": float(self.t_[-1]),
-                "n_samples": self.n_samples_,
-                "sha256": _grid_hash(self.t_),
-                "t": self.t_.tolist(),
-            },
             "kind": self.kind_,
             "architecture": {
                 "network": type(net).__name__,
@@ -1390,11 +1371,8 @@ class AdaptivePoleEstimator(_ParamsMixin):
             "config": self.config_.to_dict(),
             "histories": [h.to_dict() for h in self.histories_],
             "pretrain_histories": [h.to_dict() for h in self.pretrain_histories_],
-            "weights": {"file": _WEIGHTS, "sha256": _sha256_file(weights)},
         }
-        meta["metadata_sha256"] = hashlib.sha256(_canonical(meta)).hexdigest()
-        (directory / _METADATA).write_text(json.dumps(meta, indent=1) + "\n", encoding="utf-8")
-        return directory
+        return _save_verified(directory, _FORMAT, _FORMAT_VERSION, state, self.t_, fields)
 
     @classmethod
     def load(cls, directory: str | Path) -> AdaptivePoleEstimator:

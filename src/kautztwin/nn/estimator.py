@@ -61,6 +61,45 @@ def _mse(module: torch.nn.Module, batch: tuple[torch.Tensor, ...]) -> torch.Tens
     return torch.nn.functional.mse_loss(module(batch[0]), batch[1])
 
 
+def _save_verified(
+    directory: str | Path,
+    fmt: str,
+    version: int,
+    state: dict[str, torch.Tensor],
+    t: NDArray[np.float64],
+    fields: dict[str, Any],
+) -> Path:
+    """Write ``weights.pt`` and ``metadata.json`` with checksums (read back by ``_load_verified``).
+
+    The common header (format, versions, time grid and its hash, weights checksum)
+    is written here; ``fields`` adds what the estimator needs to rebuild itself.
+    """
+    from .. import __version__
+
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    weights = directory / _WEIGHTS
+    torch.save(state, weights)
+    meta: dict[str, Any] = {
+        "format": fmt,
+        "format_version": version,
+        "kautztwin_version": __version__,
+        "torch_version": torch.__version__,
+        "time_grid": {
+            "t0": float(t[0]),
+            "t_end": float(t[-1]),
+            "n_samples": int(t.size),
+            "sha256": _grid_hash(t),
+            "t": t.tolist(),
+        },
+        **fields,
+        "weights": {"file": _WEIGHTS, "sha256": _sha256_file(weights)},
+    }
+    meta["metadata_sha256"] = hashlib.sha256(_canonical(meta)).hexdigest()
+    (directory / _METADATA).write_text(json.dumps(meta, indent=1) + "\n", encoding="utf-8")
+    return directory
+
+
 def _load_verified(
     directory: str | Path,
     fmt: str,
@@ -569,27 +608,10 @@ class CoefficientEstimator(_ParamsMixin):
         NotFittedError
             If the estimator is not fitted.
         """
-        from .. import __version__
-
         self._check_is_fitted()
-        directory = Path(directory)
-        directory.mkdir(parents=True, exist_ok=True)
-        weights = directory / _WEIGHTS
-        torch.save(self._state(), weights)
         net = self.networks_[0]
-        meta: dict[str, Any] = {
-            "format": _FORMAT,
-            "format_version": _FORMAT_VERSION,
-            "kautztwin_version": __version__,
-            "torch_version": torch.__version__,
+        fields: dict[str, Any] = {
             "basis": self.basis_.to_dict(),
-            "time_grid": {
-                "t0": float(self.t_[0]),
-                "t_end": float(self.t_[-1]),
-                "n_samples": self.n_samples_,
-                "sha256": _grid_hash(self.t_),
-                "t": self.t_.tolist(),
-            },
             "kind": self.kind_,
             "normalization": {
                 "inputs": self.input_scaler_.to_dict(),
@@ -608,11 +630,8 @@ class CoefficientEstimator(_ParamsMixin):
             "random_state": int(self.random_state),
             "config": self.config_.to_dict(),
             "histories": [h.to_dict() for h in self.histories_],
-            "weights": {"file": _WEIGHTS, "sha256": _sha256_file(weights)},
         }
-        meta["metadata_sha256"] = hashlib.sha256(_canonical(meta)).hexdigest()
-        (directory / _METADATA).write_text(json.dumps(meta, indent=1) + "\n", encoding="utf-8")
-        return directory
+        return _save_verified(directory, _FORMAT, _FORMAT_VERSION, self._state(), self.t_, fields)
 
     @classmethod
     def load(cls, directory: str | Path) -> CoefficientEstimator:
