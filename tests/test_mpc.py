@@ -584,3 +584,119 @@ class TestErrors:
             simulate_closed_loop(
                 (np.eye(1) * 0.5, [[1.0]], [[1.0]]), ref_problem, 1.0, 5, state_source="plant"
             )
+
+
+# ============================================================================ lean path
+def _replay_states(plant: PlantModel, run) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """(x, setpoint, u_prev) of every solve of a closed-loop run with the 'model' state."""
+    dx = np.zeros(plant.n_states)
+    u_prev = np.zeros(plant.n_inputs)
+    y = run.y.reshape(run.y.shape[0], -1)
+    du = run.du.reshape(run.du.shape[0], -1)
+    u = run.u.reshape(run.u.shape[0], -1)
+    sp = run.setpoint.reshape(run.setpoint.shape[0], -1)
+    out = []
+    for k in range(du.shape[0]):
+        out.append((np.r_[dx, y[k]], sp[k], u_prev))
+        dx = plant.A @ dx + plant.B @ du[k]
+        u_prev = u[k]
+    return out
+
+
+class TestLeanMove:
+    """MPCProblem.move is the first move of MPCProblem.solve, with the same warm start."""
+
+    @pytest.mark.parametrize(
+        "kwargs",
+        [
+            dict(basis=(0.8, 8)),
+            dict(full_horizon=True),
+            dict(basis=(0.6, 6), constraint_steps=[0, 1, 2, 5, 10, 20, 40]),
+            dict(basis=(0.8, 8), warm_start=False),
+            # Hildreth goes through solve(); a short run keeps its sweeps cheap
+            dict(basis=(0.6, 6), solver="hildreth", n_steps=4),
+        ],
+    )
+    def test_equals_solve_along_a_closed_loop(self, ref_plant, kwargs):
+        kw = dict(kwargs)
+        basis = kw.pop("basis", None)
+        steps = STEPS[: kw.pop("n_steps", STEPS.size)]
+        run = simulate_closed_loop(
+            ref_plant, MPCProblem(ref_plant, basis, 50, r=0.05, **LIMITS, **kw), steps
+        )
+        assert int(np.max(run.iterations)) > 0  # constraints were active
+        lean = MPCProblem(ref_plant, basis, 50, r=0.05, **LIMITS, **kw)
+        for k, (x, r, u_prev) in enumerate(_replay_states(ref_plant, run)):
+            mv = lean.move(x, float(r[0]), u_prev=float(u_prev[0]))
+            assert mv.du.shape == (1,) and mv.u.shape == (1,)
+            # the QP is solved to DAQP's default tolerances; 1e-9 leaves room for the rounding
+            # of the one-product bounds against solve()'s two-step sums, nothing more
+            assert mv.du[0] == pytest.approx(run.du[k], abs=1e-9)
+            assert mv.u[0] == pytest.approx(run.u[k], abs=1e-9)
+
+    def test_mixing_solve_and_move_keeps_the_sequence(self, ref_plant):
+        run = simulate_closed_loop(ref_plant, MPCProblem(ref_plant, (0.8, 8), 50, **LIMITS), STEPS)
+        mixed = MPCProblem(ref_plant, (0.8, 8), 50, **LIMITS)
+        for k, (x, r, u_prev) in enumerate(_replay_states(ref_plant, run)):
+            if k % 3:
+                du0 = mixed.move(x, r, u_prev=u_prev).du[0]
+            else:
+                du0 = mixed.solve(x, r, u_prev=u_prev).du[0]
+            assert du0 == pytest.approx(run.du[k], abs=1e-9)
+
+    def test_unconstrained_is_the_design_law(self):
+        problem = MPCProblem(DT_PLANT, (0.5, 4), 20, r=0.1)
+        assert problem.n_constraints == 0
+        rng = np.random.default_rng(3)
+        for _ in range(5):
+            x, r, up = rng.normal(size=3), rng.normal(), rng.normal()
+            e = x.copy()
+            e[-1] -= r
+            mv = problem.move(x, r, u_prev=up)
+            expected = -(problem.design.K_mpc @ e)
+            np.testing.assert_allclose(mv.du, expected, rtol=1e-12, atol=1e-14)
+            np.testing.assert_allclose(mv.u, up + expected, rtol=1e-12, atol=1e-14)
+            assert mv.status == 0 and mv.iterations == 0
+
+    def test_mimo(self):
+        A = np.diag([0.9, 0.8])
+        B = np.array([[0.1, 0.02], [0.03, 0.2]])
+        plant = plant_model((A, B, np.eye(2)))
+        kw = dict(r=[0.1, 0.2], u_max=[2.0, 2.0], du_max=0.5, du_min=-0.5, y_max=[0.6, 0.6])
+        run = simulate_closed_loop(
+            plant, MPCProblem(plant, [(0.5, 4), (0.3, 3)], 30, **kw), np.tile([0.5, -0.3], (60, 1))
+        )
+        lean = MPCProblem(plant, [(0.5, 4), (0.3, 3)], 30, **kw)
+        for k, (x, r, u_prev) in enumerate(_replay_states(plant, run)):
+            mv = lean.move(x, r, u_prev=u_prev)
+            assert mv.du.shape == (2,)
+            np.testing.assert_allclose(mv.du, run.du[k], atol=1e-9)
+
+    def test_infeasible_falls_back_to_the_compromise(self, ref_plant):
+        x_m = np.linalg.solve(np.eye(4) - ref_plant.A, ref_plant.B[:, 0] * 2.0)  # y = 1, u = 2
+        kw = dict(r=0.05, u_min=-2.5, u_max=2.5, du_min=-0.3, du_max=0.3, y_max=0.5)
+        full = MPCProblem(ref_plant, (0.6, 6), 50, **kw)
+        lean = MPCProblem(ref_plant, (0.6, 6), 50, **kw)
+        x = full.augmented_state(x_m, x_m)
+        res = full.solve(x, 0.0, u_prev=2.0)
+        mv = lean.move(x, 0.0, u_prev=2.0)
+        assert not res.success and not mv.success and mv.status == res.status == 2
+        assert mv.du[0] == pytest.approx(res.du[0], abs=1e-12)
+        assert mv.u[0] == pytest.approx(res.u_next, abs=1e-12)
+
+    def test_bad_arguments_name_the_problem(self, ref_problem):
+        with pytest.raises(DimensionError, match="x has 1 entries but 5"):
+            ref_problem.move(0.0, 1.0)
+        with pytest.raises(DimensionError, match="x has 3 entries but 5"):
+            ref_problem.move(np.zeros(3), 1.0)
+        with pytest.raises(DimensionError, match="setpoint"):
+            ref_problem.move(np.zeros(5), [1.0, 2.0])
+        with pytest.raises(DataError, match="NaN"):
+            ref_problem.move(np.full(5, np.nan), 1.0)
+        with pytest.raises(DataError, match="u_prev"):
+            ref_problem.move(np.zeros(5), 1.0, u_prev=np.inf)
+
+    def test_move_is_immutable(self, ref_problem):
+        mv = ref_problem.move(np.zeros(5), 1.0)
+        with pytest.raises(AttributeError):
+            mv.du = np.zeros(1)  # type: ignore[misc]

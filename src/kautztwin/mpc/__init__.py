@@ -22,6 +22,7 @@ from .laguerre import (
 )
 from .problem import (
     ClosedLoopResult,
+    MPCMove,
     MPCProblem,
     MPCResult,
     Prediction,
@@ -33,6 +34,7 @@ __all__ = [
     "ClosedLoopResult",
     "HildrethResult",
     "MPCDesign",
+    "MPCMove",
     "MPCProblem",
     "MPCResult",
     "PlantModel",

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import scipy.linalg
@@ -26,6 +26,7 @@ from .laguerre import MPCDesign, PlantModel, _check_horizon, _discrete_build, pl
 
 __all__ = [
     "ClosedLoopResult",
+    "MPCMove",
     "MPCProblem",
     "MPCResult",
     "Prediction",
@@ -115,6 +116,43 @@ class MPCResult:
         """The input to apply now, ``u[0]`` (a float for SISO plants)."""
         u0 = self.u[0]
         return float(u0) if np.ndim(u0) == 0 else u0
+
+
+class MPCMove(NamedTuple):
+    r"""First move of one MPC solve, from the lean path :meth:`MPCProblem.move`.
+
+    A plain (immutable) named tuple: building it costs a fraction of a
+    microsecond, so a control loop that only needs the move to apply does not
+    pay for the plan over the horizon that :class:`MPCResult` carries.
+
+    Parameters
+    ----------
+    du : ndarray of shape (n_inputs,)
+        Increment to apply now, :math:`\Delta u(k) = L(0)^T\eta`.
+    u : ndarray of shape (n_inputs,)
+        Input to apply now, ``u_prev + du``.
+    success : bool
+        True when the QP was solved with all constraints met (as in
+        :attr:`MPCResult.success`; a compromise move otherwise).
+    status : int
+        Solver exit flag (as in :attr:`MPCResult.status`).
+    iterations : int
+        QP solver iterations.
+    solver_time : float
+        Time reported by the QP solver itself, s.
+
+    See Also
+    --------
+    MPCProblem.move : Produces it.
+    MPCResult : The full result with the plan over the horizon.
+    """
+
+    du: NDArray[np.float64]
+    u: NDArray[np.float64]
+    success: bool
+    status: int
+    iterations: int
+    solver_time: float
 
 
 @dataclass(frozen=True, eq=False)
@@ -482,6 +520,44 @@ class MPCProblem:
             self._h_rows = np.concatenate([np.flatnonzero(up), np.flatnonzero(dn)])
             self._h_sign = np.concatenate([np.ones(up.sum()), -np.ones(dn.sum())])
             self._h_M = self._Mc[self._h_rows] * self._h_sign[:, None]
+        self._setup_lean()
+
+    # ------------------------------------------------------------------ lean path
+    def _setup_lean(self) -> None:
+        """One matrix that maps ``v = [x; u_prev; r; 1]`` to ``[F; upper; lower]`` at once.
+
+        :meth:`move` then costs one matrix-vector product, the solver call
+        and ``du = L(0)^T eta``.  Without constraints the rows give the
+        unconstrained optimum ``eta = K_x (x - x_s)`` directly.
+        """
+        n, n_x, N = self._n, self._n_x, self._N
+        n_u, n_y = self._plant.n_inputs, self._plant.n_outputs
+        n_v = n + n_u + n_y + 1
+        r_cols = slice(n + n_u, n + n_u + n_y)
+        if self._m == 0:
+            W = np.zeros((N, n_v))
+            W[:, :n] = self._Kx
+            W[:, r_cols] = -self._Kx[:, n_x:]
+            self._lean_split = (N, N)
+        elif self._solver == "daqp":
+            mp = self._perm.size
+            W = np.zeros((N + 2 * mp, n_v))
+            W[:N, :n] = self._Fx
+            W[:N, r_cols] = -self._Fx[:, n_x:]
+            W[N : N + mp, : n + n_u] = self._Gp
+            W[N : N + mp, -1] = self._hi0p
+            W[N + mp :, : n + n_u] = self._Gp
+            W[N + mp :, -1] = self._lo0p
+            self._lean_split = (N, N + mp)
+        else:  # Hildreth: move() goes through solve()
+            W = np.zeros((0, n_v))
+            self._lean_split = (0, 0)
+        self._lean_W = W
+        self._lean_v = np.zeros(n_v)
+        self._lean_v[-1] = 1.0
+        self._lean_out = np.empty(W.shape[0])
+        self._lean_L0 = np.ascontiguousarray(self._design.L0)
+        self._lean_slices = (slice(0, n), slice(n, n + n_u), r_cols)
 
     # ------------------------------------------------------------------ DAQP
     def _setup_daqp(self) -> None:
@@ -803,6 +879,92 @@ class MPCProblem:
         return MPCResult(
             success, message, u, y, cost, du, eta, iterations, elapsed, solver_time, status, viol
         )
+
+    def move(self, x: ArrayLike, setpoint: ArrayLike = 0.0, *, u_prev: ArrayLike = 0.0) -> MPCMove:
+        r"""Lean solve for a control loop: the first move only.
+
+        The same QP as :meth:`solve`, with the same warm start (the two may
+        be mixed), but without the plan over the horizon, the predicted cost
+        and the result object: state, set-point and previous input go through
+        one precomputed matrix-vector product into the solver's linear term
+        and bounds, and only :math:`\Delta u(k) = L(0)^T\eta` comes back.  When
+        the constraints cannot all be met (rare) it falls back to
+        :meth:`solve` for the compromise, so the move is always the one
+        :meth:`solve` would apply.  The Hildreth solver always goes through
+        :meth:`solve`.
+
+        Parameters
+        ----------
+        x : array-like of shape (n_states + n_outputs,)
+            Augmented state :math:`[x_m(k) - x_m(k-1);\ y(k)]`.
+        setpoint : float or array-like of shape (n_outputs,), default=0.0
+            Output set-point.
+        u_prev : float or array-like of shape (n_inputs,), default=0.0
+            Input applied at the previous sample.
+
+        Returns
+        -------
+        MPCMove
+
+        Raises
+        ------
+        DimensionError
+            If ``x``, ``setpoint`` or ``u_prev`` do not fit the plant.
+        DataError
+            If an argument holds NaN or inf.
+
+        See Also
+        --------
+        solve : The full result (plan, prediction, cost).
+
+        Examples
+        --------
+        >>> from kautztwin.mpc import MPCProblem
+        >>> plant = ([[0.8, 0.2], [0.0, 0.7]], [0.0, 1.0], [1.0, 0.0])
+        >>> mpc = MPCProblem(plant, (0.5, 4), 20, r=0.1, u_min=-0.5, u_max=0.5)
+        >>> mv = mpc.move([0.0, 0.0, 0.0], setpoint=1.0, u_prev=0.0)
+        >>> mv.success, round(float(mv.u[0]), 6)
+        (True, 0.5)
+        """
+        if self._solver != "daqp" and self._m:
+            return self._move_from(self.solve(x, setpoint, u_prev=u_prev))
+        v = self._lean_v
+        sx, su, sr = self._lean_slices
+        xa = np.asarray(x, dtype=float)
+        if xa.size != self._n:  # a scalar would broadcast; the full path names the error
+            return self._move_from(self.solve(x, setpoint, u_prev=u_prev))
+        try:
+            v[sx] = xa
+            v[su] = u_prev
+            v[sr] = setpoint
+        except (ValueError, TypeError):
+            # the full path names the offending argument
+            return self._move_from(self.solve(x, setpoint, u_prev=u_prev))
+        if not np.isfinite(v).all():
+            return self._move_from(self.solve(x, setpoint, u_prev=u_prev))
+        out = np.dot(self._lean_W, v, out=self._lean_out)
+        a, b = self._lean_split
+        iterations, solver_time, status = 0, 0.0, 0
+        if self._m == 0:
+            eta = out
+        else:
+            model = self._daqp
+            if self._warm:
+                model.update(f=out[:a], bupper=out[a:b], blower=out[b:])
+            else:
+                model.update(f=out[:a], bupper=out[a:b], blower=out[b:], sense=self._sense0)
+            eta, _, status, info = model.solve()
+            if status != 1:
+                return self._move_from(self.solve(x, setpoint, u_prev=u_prev))
+            iterations, solver_time = info["iterations"], info["solve_time"]
+        du = eta @ self._lean_L0
+        return MPCMove(du, v[su] + du, True, status, iterations, solver_time)
+
+    @staticmethod
+    def _move_from(res: MPCResult) -> MPCMove:
+        du = np.atleast_1d(res.du[0]).copy()
+        u = np.atleast_1d(res.u[0]).copy()
+        return MPCMove(du, u, res.success, res.status, res.iterations, res.solver_time)
 
     def _solve_daqp(
         self, f: NDArray, z: NDArray, e: NDArray
