@@ -42,13 +42,8 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
 import argparse  # noqa: E402 - the thread variables must be set before numpy loads
-import datetime as dt  # noqa: E402
-import json  # noqa: E402
-import platform  # noqa: E402
-import subprocess  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
-from collections.abc import Callable  # noqa: E402
 from pathlib import Path  # noqa: E402
 from typing import Any  # noqa: E402
 
@@ -60,6 +55,10 @@ import kautztwin as kt  # noqa: E402
 from kautztwin.datasets import draw_parameters, make_dataset, paper_system  # noqa: E402
 from kautztwin.nn.adaptive import AdaptivePoleEstimator  # noqa: E402
 from kautztwin.nn.oracle import oracle_fit  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import benchmark_result, timed, write_json  # noqa: E402
+from _common import machine_info as _machine_info  # noqa: E402
 
 N_SAMPLES = 900
 T_END = 20.0
@@ -89,55 +88,24 @@ METHODS = (
 )
 
 
-def _git(*args: str) -> str | None:
-    try:
-        out = subprocess.run(
-            ["git", *args],
-            cwd=Path(__file__).resolve().parent,
-            capture_output=True,
-            text=True,
-            timeout=10,
-            check=True,
-        )
-    except (OSError, subprocess.SubprocessError):
-        return None
-    return out.stdout.strip()
-
-
-def _cpu_model() -> str:
-    try:
-        with open("/proc/cpuinfo", encoding="utf-8") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
 def machine_info() -> dict[str, Any]:
-    """Where the numbers come from: CPU, library versions, thread settings, load."""
-    affinity = getattr(os, "sched_getaffinity", None)
-    return {
-        "platform": platform.platform(),
-        "cpu_model": _cpu_model(),
-        "cpu_count": os.cpu_count(),
-        "cpus_available": len(affinity(0)) if affinity else os.cpu_count(),
-        "python": platform.python_version(),
-        "numpy": np.__version__,
-        "scipy": scipy.__version__,
-        "torch": torch.__version__,
-        "torch_threads": torch.get_num_threads(),
-        "kautztwin": kt.__version__,
-        "load_average_at_start": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
-        "thread_env": {
-            k: os.environ[k]
-            for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
-            if k in os.environ
-        },
-        "git_commit": _git("rev-parse", "HEAD") or None,
-        "git_dirty": None if (status := _git("status", "--porcelain")) is None else bool(status),
-    }
+    """Where the numbers come from: CPU, library versions, torch threads, load.
+
+    Returns
+    -------
+    dict
+        :func:`_common.machine_info` with ``numpy``, ``scipy``, ``torch``,
+        ``torch_threads`` and ``kautztwin`` as the library entries.
+    """
+    return _machine_info(
+        {
+            "numpy": np.__version__,
+            "scipy": scipy.__version__,
+            "torch": torch.__version__,
+            "torch_threads": torch.get_num_threads(),
+            "kautztwin": kt.__version__,
+        }
+    )
 
 
 def _stats(fits: np.ndarray, seconds: float) -> dict[str, float]:
@@ -148,12 +116,6 @@ def _stats(fits: np.ndarray, seconds: float) -> dict[str, float]:
         "min": float(np.min(fits)),
         "seconds_per_record": seconds / fits.size,
     }
-
-
-def _timed(fn: Callable[[], np.ndarray]) -> tuple[np.ndarray, float]:
-    start = time.perf_counter()
-    out = fn()
-    return out, time.perf_counter() - start
 
 
 def _oracle(t: np.ndarray, H: np.ndarray, system: Any, P: np.ndarray) -> np.ndarray:
@@ -191,17 +153,17 @@ def run_case(noise: float, settings: dict[str, Any], seed: int) -> dict[str, Any
             ("adaptive_float32", lambda idx=idx: est.predict_responses(H[idx], dtype=f32)),
             ("oracle", lambda idx=idx: _oracle(t, H[idx], system, P[idx])),
         ):
-            yhat, sec = _timed(fn)
+            yhat, sec = timed(fn)
             parts[name].append(yhat)
             seconds[name] += sec
     for name, chunks in parts.items():
         estimates[name] = (np.concatenate(chunks), seconds[name])
-    estimates["adaptive_refine"] = _timed(lambda: est.predict_responses(H, refine=True))
+    estimates["adaptive_refine"] = timed(lambda: est.predict_responses(H, refine=True))
     K = nominal.evaluate(t)
-    estimates["fixed_basis_ceiling"] = _timed(
+    estimates["fixed_basis_ceiling"] = timed(
         lambda: kt.project(nominal, t, clean, method="lstsq") @ K
     )
-    estimates["projection"] = _timed(lambda: kt.project(nominal, t, H, method="lstsq") @ K)
+    estimates["projection"] = timed(lambda: kt.project(nominal, t, H, method="lstsq") @ K)
 
     methods = {
         name: _stats(np.asarray(kt.fit_percent(clean, yhat)), sec)
@@ -286,12 +248,11 @@ def main(argv: list[str] | None = None) -> int:
     for noise in NOISES:
         cases.append(run_case(noise, settings, args.seed))
         _print_table(cases[-1:])
-    result = {
-        "benchmark": "adaptive",
-        "created_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
-        "command": " ".join([Path(sys.argv[0]).name, *(sys.argv[1:] if argv is None else argv)]),
-        "quick": args.quick,
-        "settings": {
+    result = benchmark_result(
+        "adaptive",
+        argv,
+        quick=args.quick,
+        settings={
             "system": "paper_system: k/((s+a)(s+b)(s^2+2 zeta wn s+wn^2)), k=6 a=1 b=3 wn=2 "
             "zeta=0.25",
             "uncertainty": UNCERTAINTY,
@@ -303,15 +264,11 @@ def main(argv: list[str] | None = None) -> int:
             "n_train": settings["n_train"],
             "n_test": settings["n_test"],
         },
-        "machine": machine,
-        "cases": cases,
-        "elapsed_s": time.perf_counter() - started,
-    }
-    result["machine"]["load_average_at_end"] = (
-        list(os.getloadavg()) if hasattr(os, "getloadavg") else None
+        machine=machine,
+        cases=cases,
+        elapsed_s=time.perf_counter() - started,
     )
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2) + "\n", encoding="utf-8")
+    write_json(args.out, result)
     print(f"\n{result['elapsed_s']:.1f} s; results written to {args.out}")
     return 0
 

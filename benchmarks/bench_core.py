@@ -23,12 +23,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import datetime as dt
-import json
-import os
-import platform
 import statistics
-import subprocess
 import sys
 import time
 from collections.abc import Callable
@@ -36,12 +31,15 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import scipy
 import scipy.integrate
 import scipy.signal
 
 import kautztwin as kt
 from kautztwin.data import reference_poles, reference_response
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+# machine_info stays importable from here: bench_mpc.py takes it from bench_core
+from _common import benchmark_result, machine_info, write_json  # noqa: E402
 
 N_SAMPLES = 900
 T_END = 20.0
@@ -99,65 +97,6 @@ def _naive_projection(K: np.ndarray, t: np.ndarray, H: np.ndarray) -> np.ndarray
         for i in range(K.shape[0]):
             c[r, i] = scipy.integrate.simpson(H[r] * K[i], x=t)
     return c
-
-
-def _git(*args: str) -> str | None:
-    try:
-        out = subprocess.run(
-            ["git", *args],
-            cwd=Path(__file__).resolve().parent,
-            capture_output=True,
-            text=True,
-            timeout=10,
-            check=True,
-        )
-    except (OSError, subprocess.SubprocessError):
-        return None
-    return out.stdout.strip()
-
-
-def _cpu_model() -> str:
-    try:
-        with open("/proc/cpuinfo", encoding="utf-8") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
-def _blas() -> str | None:
-    try:
-        config = np.show_config(mode="dicts")
-        blas = config["Build Dependencies"]["blas"]
-        return f"{blas.get('name')} {blas.get('version', '')}".strip()
-    except Exception:  # purely informative: any failure just leaves it out
-        return None
-
-
-def machine_info() -> dict[str, Any]:
-    """Where the numbers come from: CPU, library versions, thread settings."""
-    affinity = getattr(os, "sched_getaffinity", None)
-    return {
-        "platform": platform.platform(),
-        "cpu_model": _cpu_model(),
-        "cpu_count": os.cpu_count(),
-        "cpus_available": len(affinity(0)) if affinity else os.cpu_count(),
-        "python": platform.python_version(),
-        "numpy": np.__version__,
-        "scipy": scipy.__version__,
-        "kautztwin": kt.__version__,
-        "blas": _blas(),
-        "load_average_at_start": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
-        "thread_env": {
-            k: os.environ[k]
-            for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
-            if k in os.environ
-        },
-        "git_commit": _git("rev-parse", "HEAD") or None,
-        "git_dirty": None if (status := _git("status", "--porcelain")) is None else bool(status),
-    }
 
 
 def bench_case(
@@ -287,12 +226,11 @@ def main(argv: list[str] | None = None) -> int:
         )
         for name, basis in _bases().items()
     ]
-    result = {
-        "benchmark": "core",
-        "created_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
-        "command": " ".join([Path(sys.argv[0]).name, *(sys.argv[1:] if argv is None else argv)]),
-        "quick": args.quick,
-        "settings": {
+    result = benchmark_result(
+        "core",
+        argv,
+        quick=args.quick,
+        settings={
             "n_samples": N_SAMPLES,
             "t_end": T_END,
             "n_records": N_RECORDS,
@@ -301,16 +239,12 @@ def main(argv: list[str] | None = None) -> int:
             "naive_records": naive_records,
             "timer": "time.perf_counter; median per call over interleaved repeats, after a warm-up",
         },
-        "machine": machine,
-        "cases": cases,
-        "elapsed_s": time.perf_counter() - started,
-    }
-    result["machine"]["load_average_at_end"] = (
-        list(os.getloadavg()) if hasattr(os, "getloadavg") else None
+        machine=machine,
+        cases=cases,
+        elapsed_s=time.perf_counter() - started,
     )
     _print_table(cases)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2) + "\n", encoding="utf-8")
+    write_json(args.out, result)
     print(f"\n{result['elapsed_s']:.1f} s; results written to {args.out}")
     return 0
 

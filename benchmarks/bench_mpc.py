@@ -11,11 +11,18 @@ closed-loop set-point schedule with
 
 all with the same horizon, cost (``Q = 1`` on the output, ``r`` on the
 increments), and the same input, rate and output limits imposed at every step of
-the horizon, solved by DAQP through :class:`kautztwin.mpc.MPCProblem`.  It
-records the number of decision variables and constraint rows, the wall time of
-each ``MPCProblem.solve`` call (median, p99), the QP time DAQP reports for the
-same calls (warm-started, and again with cold starts), the closed-loop cost
-relative to the full-horizon MPC and the number of constraint violations.
+the horizon, solved by DAQP through :class:`kautztwin.mpc.MPCProblem`.  A second
+pair of rows ("thin") imposes the limits on a reduced set of horizon steps
+(the first 10, then every 5th) for both the full-horizon and the Laguerre
+controller: a common practice with basis-function MPC, compared like for like.
+
+For every controller it records the number of decision variables and
+constraint rows and three times per MPC step (median, p99): ``solve`` = the
+whole :meth:`MPCProblem.solve` call (plan, cost and result object included),
+``move`` = the lean :meth:`MPCProblem.move` call a control loop uses (first
+move only), and ``QP`` = the solve time DAQP itself reports for the same call
+(warm-started, and again with cold starts); and the closed-loop cost relative
+to the full-horizon MPC and the number of constraint violations.
 
 The Kautz configuration used for the acceptance check (Laguerre ``a = 0.8``,
 ``N = 8``) is fixed in this file, not chosen from the results; the other rows show
@@ -29,10 +36,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import gc
-import json
-import os
 import sys
 import time
 from pathlib import Path
@@ -46,11 +50,17 @@ from kautztwin.data import reference_system
 from kautztwin.mpc import MPCProblem, plant_model, simulate_closed_loop
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_core import machine_info  # noqa: E402
+from _common import benchmark_result, machine_info, write_json  # noqa: E402
 
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "mpc.json"
 MAIN = (0.8, 8)  # the Kautz/Laguerre configuration checked against the acceptance targets
 PLATEAU = 60  # samples per set-point level
+THIN_DENSE, THIN_EVERY = 10, 5  # "thin" constraint set: steps 0..9, then every 5th step
+
+
+def thin_steps(horizon: int) -> list[int]:
+    """Horizon steps of the "thin" constraint set."""
+    return list(range(THIN_DENSE)) + list(range(THIN_DENSE, horizon, THIN_EVERY))
 
 
 def _cases() -> dict[str, dict[str, Any]]:
@@ -87,8 +97,15 @@ def _configs(case: dict[str, Any], horizon: int) -> dict[str, dict[str, Any]]:
                 out[f"laguerre a={a} N={n}"] = {"basis": (a, n)}
         out["kautz N=6 (pair)"] = {"basis": case["kautz"]}
     else:
-        out[f"laguerre a={MAIN[0]} N={MAIN[1]}"] = {"basis": MAIN}
+        out[_main_name()] = {"basis": MAIN}
+    thin = thin_steps(horizon)
+    out["full (thin)"] = {"full_horizon": True, "constraint_steps": thin}
+    out[_main_name() + " (thin)"] = {"basis": MAIN, "constraint_steps": thin}
     return out
+
+
+def _main_name() -> str:
+    return f"laguerre a={MAIN[0]} N={MAIN[1]}"
 
 
 def _problem(case: dict[str, Any], horizon: int, kwargs: dict[str, Any], warm: bool) -> MPCProblem:
@@ -98,6 +115,7 @@ def _problem(case: dict[str, Any], horizon: int, kwargs: dict[str, Any], warm: b
         horizon,
         r=case["r"],
         full_horizon=kwargs.get("full_horizon", False),
+        constraint_steps=kwargs.get("constraint_steps"),
         warm_start=warm,
         **case["limits"],
     )
@@ -129,28 +147,34 @@ def bench_case(name: str, case: dict[str, Any], horizon: int, repeats: int) -> d
         inputs[key] = _solve_inputs(problems[key], runs[key])
     n_steps = len(setpoints)
     keys = list(configs)
-    wall = {(k, w): np.empty((repeats, n_steps)) for k in keys for w in (True, False)}
-    qp = {(k, w): np.empty((repeats, n_steps)) for k in keys for w in (True, False)}
+    variants = [(k, w, mode) for k in keys for w in (True, False) for mode in ("solve", "move")]
+    wall = {v: np.empty((repeats, n_steps)) for v in variants}
+    qp = {v: np.empty((repeats, n_steps)) for v in variants}
     gc.collect()
     gc.disable()
     try:
         for rep in range(repeats):
             # fresh workspaces, so that every replay starts like the closed loop did
-            fresh = {
-                (k, w): _problem(case, horizon, configs[k], w) for k in keys for w in (True, False)
-            }
-            order = list(fresh)
+            fresh = {v: _problem(case, horizon, configs[v[0]], v[1]) for v in variants}
             for step in range(n_steps):
                 # every controller solves its own step `step` back to back: load bursts hit all
-                for j in range(len(order)):
-                    key = order[(j + step) % len(order)]
-                    x, r, u_prev = inputs[key[0]][step]
-                    t0 = time.perf_counter()
-                    res = fresh[key].solve(x, r, u_prev=u_prev)
-                    wall[key][rep, step] = time.perf_counter() - t0
-                    qp[key][rep, step] = res.solver_time
-                    if abs(res.du[0] - runs[key[0]].du[step]) > 1e-6:
-                        raise RuntimeError(f"{name}/{key}: replay differs from the closed loop")
+                for j in range(len(variants)):
+                    v = variants[(j + step) % len(variants)]
+                    x, r, u_prev = inputs[v[0]][step]
+                    problem = fresh[v]
+                    if v[2] == "solve":
+                        t0 = time.perf_counter()
+                        res = problem.solve(x, r, u_prev=u_prev)
+                        wall[v][rep, step] = time.perf_counter() - t0
+                        du0 = res.du[0]
+                    else:
+                        t0 = time.perf_counter()
+                        res = problem.move(x, r, u_prev=u_prev)
+                        wall[v][rep, step] = time.perf_counter() - t0
+                        du0 = res.du[0]
+                    qp[v][rep, step] = res.solver_time
+                    if abs(du0 - runs[v[0]].du[step]) > 1e-6:
+                        raise RuntimeError(f"{name}/{v}: replay differs from the closed loop")
     finally:
         gc.enable()
     full_cost = runs["full"].cost
@@ -162,10 +186,13 @@ def bench_case(name: str, case: dict[str, Any], horizon: int, repeats: int) -> d
                 "method": key,
                 "n_variables": problem.n_variables,
                 "n_constraint_rows": problem.n_constraints,
-                "wall_us": _stats(wall[key, True] * 1e6),
-                "qp_us": _stats(qp[key, True] * 1e6),
-                "wall_cold_us": _stats(wall[key, False] * 1e6),
-                "qp_cold_us": _stats(qp[key, False] * 1e6),
+                "wall_us": _stats(wall[key, True, "solve"] * 1e6),
+                "move_us": _stats(wall[key, True, "move"] * 1e6),
+                "qp_us": _stats(qp[key, True, "move"] * 1e6),
+                "wall_cold_us": _stats(wall[key, False, "solve"] * 1e6),
+                "move_cold_us": _stats(wall[key, False, "move"] * 1e6),
+                "qp_cold_us": _stats(qp[key, False, "move"] * 1e6),
+                "constraint_steps": len(configs[key].get("constraint_steps", range(horizon))),
                 "iterations_max": int(res.iterations.max()),
                 "closed_loop_cost": res.cost,
                 "cost_ratio": res.cost / full_cost,
@@ -175,12 +202,18 @@ def bench_case(name: str, case: dict[str, Any], horizon: int, repeats: int) -> d
                 "n_steps": n_steps,
             }
         )
-    full = rows[0]
-    for row in rows[1:]:
-        row["fewer_variables"] = full["n_variables"] / row["n_variables"]
-        for what in ("wall_us", "qp_us", "wall_cold_us", "qp_cold_us"):
+    by_name = {row["method"]: row for row in rows}
+    for row in rows:
+        # like for like: a "thin" row against the full-horizon MPC with the same thin set
+        base = by_name["full (thin)" if row["method"].endswith("(thin)") else "full"]
+        if row is base:
+            continue
+        row["baseline"] = base["method"]
+        row["cost_ratio_baseline"] = row["closed_loop_cost"] / base["closed_loop_cost"]
+        row["fewer_variables"] = base["n_variables"] / row["n_variables"]
+        for what in ("wall_us", "move_us", "qp_us", "wall_cold_us", "move_cold_us", "qp_cold_us"):
             for stat in ("median", "p99"):
-                row[f"speedup_{stat}_{what[:-3]}"] = full[what][stat] / row[what][stat]
+                row[f"speedup_{stat}_{what[:-3]}"] = base[what][stat] / row[what][stat]
     return {
         "case": name,
         "description": case["description"],
@@ -206,55 +239,60 @@ def _stats(x: np.ndarray) -> dict[str, float]:
 
 def _table(results: list[dict[str, Any]]) -> str:
     head = (
-        f"{'method':<21}{'vars':>5}{'rows':>6}{'wall med':>10}{'wall p99':>10}"
-        f"{'QP med':>9}{'QP p99':>9}{'QPc med':>9}{'QPc p99':>9}{'cost ratio':>12}{'viol':>6}"
-        f"{'fail':>6}"
+        f"{'method':<29}{'vars':>5}{'rows':>6}{'solve med':>10}{'solve p99':>10}"
+        f"{'move med':>9}{'move p99':>9}{'QP med':>8}{'QP p99':>8}{'QPc med':>8}"
+        f"{'cost ratio':>11}{'viol':>5}{'fail':>5}"
     )
     lines = [
-        "times in microseconds per MPC step: wall = whole MPCProblem.solve call (warm start),",
-        "QP = DAQP's own solve time (warm start), QPc = DAQP with cold starts",
+        "times in microseconds per MPC step (warm start): solve = whole MPCProblem.solve call,",
+        "move = lean MPCProblem.move call, QP = DAQP's own solve time,",
+        "QPc = DAQP's own solve time with cold starts;",
+        "cost ratio = closed-loop cost / that of the full-horizon MPC with the same constraint set",
     ]
     for res in results:
         lines.append(f"\n{res['case']}  (horizon {res['horizon']}; {res['description']})")
         lines.append(head)
         for row in res["rows"]:
             lines.append(
-                f"{row['method']:<21}{row['n_variables']:>5}{row['n_constraint_rows']:>6}"
+                f"{row['method']:<29}{row['n_variables']:>5}{row['n_constraint_rows']:>6}"
                 f"{row['wall_us']['median']:>10.1f}{row['wall_us']['p99']:>10.1f}"
-                f"{row['qp_us']['median']:>9.2f}{row['qp_us']['p99']:>9.2f}"
-                f"{row['qp_cold_us']['median']:>9.2f}{row['qp_cold_us']['p99']:>9.2f}"
-                f"{row['cost_ratio']:>12.5f}"
-                f"{row['violations']:>6}{row['failed_solves']:>6}"
+                f"{row['move_us']['median']:>9.1f}{row['move_us']['p99']:>9.1f}"
+                f"{row['qp_us']['median']:>8.2f}{row['qp_us']['p99']:>8.2f}"
+                f"{row['qp_cold_us']['median']:>8.2f}"
+                f"{row.get('cost_ratio_baseline', 1.0):>11.5f}"
+                f"{row['violations']:>5}{row['failed_solves']:>5}"
             )
     return "\n".join(lines)
 
 
 def _acceptance(results: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """The issue's targets for the fixed configuration MAIN, per case and horizon."""
-    main = f"laguerre a={MAIN[0]} N={MAIN[1]}"
+    """The issue's targets for the fixed configuration MAIN, per case, horizon, constraint set."""
     out = []
     for res in results:
-        full = res["rows"][0]
-        row = next(r for r in res["rows"] if r["method"] == main)
-        out.append(
-            {
+        rows = {r["method"]: r for r in res["rows"]}
+        for method in (_main_name(), _main_name() + " (thin)"):
+            row = rows[method]
+            base = rows[row["baseline"]]
+            acc = {
                 "case": res["case"],
                 "horizon": res["horizon"],
-                "method": main,
+                "method": method,
+                "baseline": row["baseline"],
                 "fewer_variables": row["fewer_variables"],
                 "fewer_variables_ge_5": row["fewer_variables"] >= 5,
-                "speedup_median_wall": row["speedup_median_wall"],
-                "speedup_median_qp": row["speedup_median_qp"],
-                "speedup_median_qp_cold": row["speedup_median_qp_cold"],
-                "speedup_p99_wall": row["speedup_p99_wall"],
-                "speedup_p99_qp": row["speedup_p99_qp"],
-                "speedup_median_ge_5_wall": row["speedup_median_wall"] >= 5,
-                "speedup_median_ge_5_qp": row["speedup_median_qp"] >= 5,
-                "cost_within_5_percent": abs(row["cost_ratio"] - 1) <= 0.05,
-                "zero_violations": row["violations"] == 0 and full["violations"] == 0,
-                "median_solve_below_1ms": row["wall_us"]["median"] < 1000,
             }
-        )
+            for what in ("wall", "move", "qp", "qp_cold"):
+                acc[f"speedup_median_{what}"] = row[f"speedup_median_{what}"]
+                acc[f"speedup_median_ge_5_{what}"] = row[f"speedup_median_{what}"] >= 5
+            acc.update(
+                speedup_p99_move=row["speedup_p99_move"],
+                speedup_p99_qp=row["speedup_p99_qp"],
+                cost_ratio=row["cost_ratio_baseline"],
+                cost_within_5_percent=abs(row["cost_ratio_baseline"] - 1) <= 0.05,
+                zero_violations=row["violations"] == 0 and base["violations"] == 0,
+                median_solve_below_1ms=row["wall_us"]["median"] < 1000,
+            )
+            out.append(acc)
     return out
 
 
@@ -274,30 +312,34 @@ def main(argv: list[str] | None = None) -> int:
     acceptance = _acceptance(results)
     text = _table(results)
     print(text)
-    print(f"\nAcceptance (Laguerre a={MAIN[0]}, N={MAIN[1]} vs full horizon):")
+    print(f"\nAcceptance (Laguerre a={MAIN[0]}, N={MAIN[1]} vs full horizon, same constraints):")
     for acc in acceptance:
         print(
-            f"  {acc['case']:<18} Np={acc['horizon']:<4} vars x{acc['fewer_variables']:.2f}  "
-            f"median speed-up: wall x{acc['speedup_median_wall']:.2f}, "
+            f"  {acc['case']:<17} Np={acc['horizon']:<4}"
+            f"{'thin' if 'thin' in acc['method'] else 'all':<5}"
+            f"vars x{acc['fewer_variables']:.2f}  median speed-up: solve "
+            f"x{acc['speedup_median_wall']:.2f}, move x{acc['speedup_median_move']:.2f}, "
             f"QP x{acc['speedup_median_qp']:.2f} (cold x{acc['speedup_median_qp_cold']:.2f})  "
-            f"cost ok={acc['cost_within_5_percent']}  no violations={acc['zero_violations']}  "
+            f"cost x{acc['cost_ratio']:.4f}  no violations={acc['zero_violations']}  "
             f"median < 1 ms={acc['median_solve_below_1ms']}"
         )
-    out = {
-        "benchmark": "mpc",
-        "created_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
-        "command": " ".join([Path(sys.argv[0]).name, *(sys.argv[1:] if argv is None else argv)]),
-        "quick": args.quick,
-        "settings": {"main": list(MAIN), "plateau_samples": PLATEAU, "repeats": repeats},
-        "machine": machine,
-        "elapsed_s": time.perf_counter() - started,
-        "results": results,
-        "acceptance": acceptance,
-        "table": text,
-    }
-    out["machine"]["load_average_at_end"] = list(os.getloadavg())
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(out, indent=2) + "\n", encoding="utf-8")
+    out = benchmark_result(
+        "mpc",
+        argv,
+        quick=args.quick,
+        settings={
+            "main": list(MAIN),
+            "plateau_samples": PLATEAU,
+            "thin_constraint_steps": f"0..{THIN_DENSE - 1}, then every {THIN_EVERY}th",
+            "repeats": repeats,
+        },
+        machine=machine,
+        elapsed_s=time.perf_counter() - started,
+        results=results,
+        acceptance=acceptance,
+        table=text,
+    )
+    write_json(args.out, out)
     print(f"\nwrote {args.out}")
     return 0
 

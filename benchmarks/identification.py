@@ -36,14 +36,11 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import datetime as dt
 import importlib.metadata
 import io
-import json
 import math
 import os
 import platform
-import subprocess
 import sys
 import time
 import warnings
@@ -60,6 +57,9 @@ import scipy.signal
 from kautztwin.exceptions import KautzTwinError
 from kautztwin.ident import ARXEstimator, Record, TransferFunctionEstimator
 from kautztwin.metrics import fit_percent
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import run_conditions, timed, utc_now, write_json  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 DATA = ROOT / "data"
@@ -116,16 +116,24 @@ def load_tclab() -> Dataset:
     path = DATA / "tclab_step_tests" / "step-test-data.csv"
     d = _csv(path)
     return Dataset(
-        name="tclab", title="TCLab heater step test (T1 from Q1)",
-        files=[str(path.relative_to(ROOT))], dt=1.0, kind="step",
-        t=d["Time"], u=d["Q1"], y=d["T1"], n_est=d["Time"].size,
+        name="tclab",
+        title="TCLab heater step test (T1 from Q1)",
+        files=[str(path.relative_to(ROOT))],
+        dt=1.0,
+        kind="step",
+        t=d["Time"],
+        u=d["Q1"],
+        y=d["T1"],
+        n_est=d["Time"].size,
         split="whole record, 801 rows (the step is logged as two rows at t = 0); no validation "
-              "part: the README's published least-squares fit is on the whole record",
-        tf={"n_poles": 2, "n_zeros": 0, "delay": False}, arx=(2, 2, 1), oe_delay=0,
+        "part: the README's published least-squares fit is on the whole record",
+        tf={"n_poles": 2, "n_zeros": 0, "delay": False},
+        arx=(2, 2, 1),
+        oe_delay=0,
         note="The published model K / ((tau_a s + 1)(tau_b s + 1)) fits 97.76 % (README); "
-             "kautztwin's 2-pole, 0-zero fit is that least-squares optimum. One step excites "
-             "no nonlinearity, so sysidentpy gets degree 1 here (a degree-2 NARX selects a "
-             "single bilinear term on these collinear regressors and its free run diverges).",
+        "kautztwin's 2-pole, 0-zero fit is that least-squares optimum. One step excites "
+        "no nonlinearity, so sysidentpy gets degree 1 here (a degree-2 NARX selects a "
+        "single bilinear term on these collinear regressors and its free run diverges).",
         narx_degree=1,
     )
 
@@ -135,13 +143,21 @@ def load_dryer() -> Dataset:
     raw = np.loadtxt(path)
     n = raw.shape[0]
     return Dataset(
-        name="dryer", title="DaISy hair dryer (outlet temperature from heater voltage)",
-        files=[str(path.relative_to(ROOT))], dt=0.08, kind="io",
-        t=0.08 * np.arange(n), u=raw[:, 0], y=raw[:, 1], n_est=500,
+        name="dryer",
+        title="DaISy hair dryer (outlet temperature from heater voltage)",
+        files=[str(path.relative_to(ROOT))],
+        dt=0.08,
+        kind="io",
+        t=0.08 * np.arange(n),
+        u=raw[:, 0],
+        y=raw[:, 1],
+        n_est=500,
         split="samples 1-500 estimate, 501-1000 validate (free run over the whole record)",
-        tf={"n_poles": 3, "n_zeros": 2, "delay": True}, arx=(2, 2, 3), oe_delay=2,
+        tf={"n_poles": 3, "n_zeros": 2, "delay": True},
+        arx=(2, 2, 3),
+        oe_delay=2,
         note="ARX(2,2,3) is the model of MATLAB's dryer2 example; Ts = 0.08 s; dead time of "
-             "about 2-3 samples.",
+        "about 2-3 samples.",
     )
 
 
@@ -150,15 +166,23 @@ def load_actuator() -> Dataset:
     d = _csv(path)
     n = d["u"].size
     return Dataset(
-        name="actuator", title="Hydraulic actuator (oil pressure from valve opening)",
-        files=[str(path.relative_to(ROOT))], dt=1.0, kind="io",
-        t=np.arange(n, dtype=float), u=d["u"], y=d["p"], n_est=512,
+        name="actuator",
+        title="Hydraulic actuator (oil pressure from valve opening)",
+        files=[str(path.relative_to(ROOT))],
+        dt=1.0,
+        kind="io",
+        t=np.arange(n, dtype=float),
+        u=d["u"],
+        y=d["p"],
+        n_est=512,
         split="samples 1-512 estimate, 513-1024 validate (free run over the whole record)",
-        tf={"n_poles": 3, "n_zeros": 1, "delay": False}, arx=(3, 2, 1), oe_delay=0,
+        tf={"n_poles": 3, "n_zeros": 1, "delay": False},
+        arx=(3, 2, 1),
+        oe_delay=0,
         note="A strongly nonlinear plant (a benchmark for neural models): every linear model "
-             "validates at about 40 %. ARX(3,2,1) is the linear reference model of the README; "
-             "kautztwin's 3 poles / 1 zero has its number of dynamic parameters. No sampling "
-             "time is documented: Ts = 1.",
+        "validates at about 40 %. ARX(3,2,1) is the linear reference model of the README; "
+        "kautztwin's 3 poles / 1 zero has its number of dynamic parameters. No sampling "
+        "time is documented: Ts = 1.",
     )
 
 
@@ -167,16 +191,24 @@ def load_gas_furnace() -> Dataset:
     d = _csv(path)
     n = d["CO2"].size
     return Dataset(
-        name="gas_furnace", title="Box-Jenkins gas furnace, series J (CO2 from gas rate)",
-        files=[str(path.relative_to(ROOT))], dt=9.0, kind="io",
-        t=9.0 * np.arange(n), u=d["InputGasRate"], y=d["CO2"], n_est=148,
+        name="gas_furnace",
+        title="Box-Jenkins gas furnace, series J (CO2 from gas rate)",
+        files=[str(path.relative_to(ROOT))],
+        dt=9.0,
+        kind="io",
+        t=9.0 * np.arange(n),
+        u=d["InputGasRate"],
+        y=d["CO2"],
+        n_est=148,
         split="samples 1-148 estimate, 149-296 validate (the PR-SSM split of the README; free "
-              "run over the whole record)",
-        tf={"n_poles": 2, "n_zeros": 1, "delay": True}, arx=(2, 2, 3), oe_delay=2,
+        "run over the whole record)",
+        tf={"n_poles": 2, "n_zeros": 1, "delay": True},
+        arx=(2, 2, 3),
+        oe_delay=2,
         note="Box & Jenkins' transfer function has two denominator and three numerator lags "
-             "after a dead time of 3 samples: kautztwin gets 2 poles, 1 zero and a delay, ARX "
-             "(2,2,3). The validation half is not predicted well by any model of the first "
-             "half: every linear model validates at 53-56 %.",
+        "after a dead time of 3 samples: kautztwin gets 2 poles, 1 zero and a delay, ARX "
+        "(2,2,3). The validation half is not predicted well by any model of the first "
+        "half: every linear model validates at 53-56 %.",
     )
 
 
@@ -186,20 +218,28 @@ def load_cascaded_tanks() -> Dataset:
     n = d["yEst"].size
     t = 4.0 * np.arange(n)
     return Dataset(
-        name="cascaded_tanks", title="Cascaded tanks (lower-tank level from pump voltage)",
-        files=[str(path.relative_to(ROOT))], dt=4.0, kind="io",
-        t=t, u=d["uEst"], y=d["yEst"], n_est=n,
+        name="cascaded_tanks",
+        title="Cascaded tanks (lower-tank level from pump voltage)",
+        files=[str(path.relative_to(ROOT))],
+        dt=4.0,
+        kind="io",
+        t=t,
+        u=d["uEst"],
+        y=d["yEst"],
+        n_est=n,
         split="estimate on (uEst, yEst), test on (uVal, yVal) by free-run simulation over all "
-              "1024 test samples (benchmark protocol). The records start from the same "
-              "initial state (README): continuous models and SIPPY start the test record from "
-              "the initial state they used (or estimated) for the estimation record, ARX and "
-              "NARX from the first na / max-lag measured test outputs (the official loader "
-              "allows the first 5)",
-        tf={"n_poles": 2, "n_zeros": 0, "delay": False}, arx=(2, 2, 1), oe_delay=0,
+        "1024 test samples (benchmark protocol). The records start from the same "
+        "initial state (README): continuous models and SIPPY start the test record from "
+        "the initial state they used (or estimated) for the estimation record, ARX and "
+        "NARX from the first na / max-lag measured test outputs (the official loader "
+        "allows the first 5)",
+        tf={"n_poles": 2, "n_zeros": 0, "delay": False},
+        arx=(2, 2, 1),
+        oe_delay=0,
         note="Two tanks: 2 poles, no zero. Nonlinear (square-root outflow, overflow); the "
-             "published best linear approximation has test RMS 0.7574 V (README). SIPPY's "
-             "N4SID returns an oscillating second-order model here (default horizon f = 20; "
-             "f = 10 or 40, MOESP and CVA fit the estimation record no better, <= 13 %).",
+        "published best linear approximation has test RMS 0.7574 V (README). SIPPY's "
+        "N4SID returns an oscillating second-order model here (default horizon f = 20; "
+        "f = 10 or 40, MOESP and CVA fit the estimation record no better, <= 13 %).",
         val=(t.copy(), d["uVal"], d["yVal"]),
     )
 
@@ -248,9 +288,7 @@ def _timed(fn: Callable[[], Any]) -> tuple[Any, float, list[str]]:
     """Call ``fn``; return its value, the wall time and the warnings it raised (deduplicated)."""
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        t0 = time.perf_counter()
-        out = fn()
-        elapsed = time.perf_counter() - t0
+        out, elapsed = timed(fn)
     msgs = list(dict.fromkeys(f"{w.category.__name__}: {str(w.message)[:200]}" for w in caught))
     return out, elapsed, msgs[:5]
 
@@ -273,14 +311,20 @@ def m_kautztwin(ds: Dataset, quick: bool, *, auto: bool = False) -> dict[str, An
     validate_from = float(ds.t[ds.n_est]) if ds.case == "split" else None
     if auto:
         max_order = 2 if quick else 4
-        est = TransferFunctionEstimator("auto", max_order=max_order, delay=cfg["delay"],
-                                        validate_from=validate_from)
-        cfg = {"n_poles": "auto", "max_order": max_order, "n_zeros": "n - 1",
-               "delay": cfg["delay"],
-               "selection": "validation fit" if validate_from is not None else "AIC"}
+        est = TransferFunctionEstimator(
+            "auto", max_order=max_order, delay=cfg["delay"], validate_from=validate_from
+        )
+        cfg = {
+            "n_poles": "auto",
+            "max_order": max_order,
+            "n_zeros": "n - 1",
+            "delay": cfg["delay"],
+            "selection": "validation fit" if validate_from is not None else "AIC",
+        }
     else:
-        est = TransferFunctionEstimator(cfg["n_poles"], cfg["n_zeros"], delay=cfg["delay"],
-                                        validate_from=validate_from)
+        est = TransferFunctionEstimator(
+            cfg["n_poles"], cfg["n_zeros"], delay=cfg["delay"], validate_from=validate_from
+        )
     _, elapsed, warn = _timed(lambda: est.fit(rec))
     m = est.model_
     yh_m = est.predict(rec)[0]  # offset and initial state from the estimation samples
@@ -291,17 +335,30 @@ def m_kautztwin(ds: Dataset, quick: bool, *, auto: bool = False) -> dict[str, An
             raise RuntimeError("the test record must share the estimation record's time grid")
         free = yh_m - m.simulate(rec.t, rec.u - rec.u_before)  # offset + initial-state response
         yh_val = free + m.simulate(tv, uv - rec.u_before)
-    model = {"num": m.num.tolist(), "den": m.den.tolist(), "delay": m.delay,
-             "poles": [[p.real, p.imag] for p in m.poles], "gain": m.gain,
-             "n_poles": m.n_poles, "n_zeros": m.n_zeros,
-             "estimator_fit_percent": m.fit_percent,
-             "estimator_validation_fit_percent": m.validation_fit_percent,
-             "n_evaluations": est.n_evaluations_}
+    model = {
+        "num": m.num.tolist(),
+        "den": m.den.tolist(),
+        "delay": m.delay,
+        "poles": [[p.real, p.imag] for p in m.poles],
+        "gain": m.gain,
+        "n_poles": m.n_poles,
+        "n_zeros": m.n_zeros,
+        "estimator_fit_percent": m.fit_percent,
+        "estimator_validation_fit_percent": m.validation_fit_percent,
+        "n_evaluations": est.n_evaluations_,
+    }
     if auto:
         model["order_selection"] = [dict(r) for r in m.order_selection]
-    return {"config": cfg, "yh_est": yh_est, "yh_val": yh_val, "time_s": elapsed,
-            "n_parameters": m.n_parameters, "model": model, "warnings": warn,
-            "parameters_note": "numerator, denominator, delay, offset and initial states"}
+    return {
+        "config": cfg,
+        "yh_est": yh_est,
+        "yh_val": yh_val,
+        "time_s": elapsed,
+        "n_parameters": m.n_parameters,
+        "model": model,
+        "warnings": warn,
+        "parameters_note": "numerator, denominator, delay, offset and initial states",
+    }
 
 
 def _arx_sim(model: Any, u: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -328,10 +385,16 @@ def m_arx(ds: Dataset, quick: bool) -> dict[str, Any]:
     yh_est, yh_val = _split_rows(ds, yh)
     if ds.case == "records":
         yh_val = yv
-    return {"config": {"na": na, "nb": nb, "nk": nk, "initial": "first na measured outputs"},
-            "yh_est": yh_est, "yh_val": yh_val, "time_s": elapsed, "n_parameters": na + nb,
-            "model": est.model_.to_dict(), "warnings": warn,
-            "parameters_note": "a and b (offsets: reference levels, not fitted)"}
+    return {
+        "config": {"na": na, "nb": nb, "nk": nk, "initial": "first na measured outputs"},
+        "yh_est": yh_est,
+        "yh_val": yh_val,
+        "time_s": elapsed,
+        "n_parameters": na + nb,
+        "model": est.model_.to_dict(),
+        "warnings": warn,
+        "parameters_note": "a and b (offsets: reference levels, not fitted)",
+    }
 
 
 def m_arx_auto(ds: Dataset, quick: bool) -> dict[str, Any]:
@@ -354,8 +417,18 @@ def m_arx_auto(ds: Dataset, quick: bool) -> dict[str, Any]:
             rss = float(np.sum((ds.y_est - yh_est) ** 2)) if fe is not None else math.inf
             n = ds.y_est.size
             aic = n * math.log(max(rss, 1e-300) / n) + 2 * (na + nb) if fe is not None else None
-            rows.append({"na": na, "nb": nb, "nk": nk, "fit_est": fe, "fit_val": fv, "aic": aic,
-                         "yh_est": yh_est, "yh_val": yh_val})
+            rows.append(
+                {
+                    "na": na,
+                    "nb": nb,
+                    "nk": nk,
+                    "fit_est": fe,
+                    "fit_val": fv,
+                    "aic": aic,
+                    "yh_est": yh_est,
+                    "yh_val": yh_val,
+                }
+            )
         if ds.case == "split":
             key = [(r["fit_val"] if r["fit_val"] is not None else -math.inf) for r in rows]
             best = int(np.argmax(key))
@@ -366,15 +439,27 @@ def m_arx_auto(ds: Dataset, quick: bool) -> dict[str, Any]:
 
     (rows, best), elapsed, warn = _timed(search)
     b = rows[best]
-    return {"config": {"na": b["na"], "nb": b["nb"], "nk": b["nk"],
-                       "grid": f"na 1-{max(g[0] for g in grid)}, nb 1-{max(g[1] for g in grid)},"
-                               f" nk 0-{max(g[2] for g in grid)} ({len(grid)} models)",
-                       "selection": "validation fit" if ds.case == "split" else "AIC"},
-            "yh_est": b["yh_est"], "yh_val": b["yh_val"], "time_s": elapsed,
-            "n_parameters": b["na"] + b["nb"], "warnings": warn,
-            "model": {"candidates": [{k: r[k] for k in ("na", "nb", "nk", "fit_est", "fit_val")}
-                                     for r in rows]},
-            "parameters_note": "a and b of the chosen model"}
+    return {
+        "config": {
+            "na": b["na"],
+            "nb": b["nb"],
+            "nk": b["nk"],
+            "grid": f"na 1-{max(g[0] for g in grid)}, nb 1-{max(g[1] for g in grid)},"
+            f" nk 0-{max(g[2] for g in grid)} ({len(grid)} models)",
+            "selection": "validation fit" if ds.case == "split" else "AIC",
+        },
+        "yh_est": b["yh_est"],
+        "yh_val": b["yh_val"],
+        "time_s": elapsed,
+        "n_parameters": b["na"] + b["nb"],
+        "warnings": warn,
+        "model": {
+            "candidates": [
+                {k: r[k] for k in ("na", "nb", "nk", "fit_est", "fit_val")} for r in rows
+            ]
+        },
+        "parameters_note": "a and b of the chosen model",
+    }
 
 
 # --------------------------------------------------------------------------- scipy OE
@@ -392,8 +477,9 @@ def _lsim(num: np.ndarray, den: np.ndarray, v: np.ndarray, tn: np.ndarray) -> np
     return np.asarray(yout, dtype=float).reshape(-1)
 
 
-def _arx_start(ds: Dataset, v: np.ndarray, y: np.ndarray, n: int, m: int, d: int,
-               tn: np.ndarray, w: np.ndarray) -> np.ndarray:
+def _arx_start(
+    ds: Dataset, v: np.ndarray, y: np.ndarray, n: int, m: int, d: int, tn: np.ndarray, w: np.ndarray
+) -> np.ndarray:
     """Start of scipy_oe: ARX poles mapped to s = ln(z)/Ts, numerator and offset by least squares.
 
     The ARX model is fitted to the estimation rows (where a step record shows its step);
@@ -444,9 +530,16 @@ def m_scipy_oe(ds: Dataset, quick: bool) -> dict[str, Any]:
 
     def fit() -> Any:
         x0 = _arx_start(ds, v[:n_est], y[:n_est], n, m, d, tn[:n_est], sw[:n_est] ** 2)
-        return scipy.optimize.least_squares(residual, x0, method="trf", x_scale="jac",
-                                            ftol=1e-10, xtol=1e-10, gtol=1e-10,
-                                            max_nfev=max_nfev)
+        return scipy.optimize.least_squares(
+            residual,
+            x0,
+            method="trf",
+            x_scale="jac",
+            ftol=1e-10,
+            xtol=1e-10,
+            gtol=1e-10,
+            max_nfev=max_nfev,
+        )
 
     sol, elapsed, warn = _timed(fit)
     num, den, c = split(sol.x)
@@ -456,16 +549,32 @@ def m_scipy_oe(ds: Dataset, quick: bool) -> dict[str, Any]:
         _, uv, _ = ds.val  # type: ignore[misc]
         yh_val = c + _lsim(num, den, _shift(uv - u_ref, d), tn)  # same assumed initial state
     poles = np.roots(den)
-    return {"config": {"n_poles": n, "n_zeros": m, "delay_samples": d,
-                       "initial": "at rest at the first input, offset fitted",
-                       "start": "ARX(n, n, delay + 1) poles, s = ln(z)/Ts"},
-            "yh_est": yh_est, "yh_val": yh_val, "time_s": elapsed,
-            "n_parameters": n + m + 2, "warnings": warn,
-            "model": {"num": num.tolist(), "den": den.tolist(), "offset": c,
-                      "delay": d * h, "poles": [[p.real, p.imag] for p in poles],
-                      "stable": bool(np.all(poles.real < 0)), "success": bool(sol.success),
-                      "nfev": int(sol.nfev), "message": str(sol.message)},
-            "parameters_note": "numerator, denominator and offset (delay fixed)"}
+    return {
+        "config": {
+            "n_poles": n,
+            "n_zeros": m,
+            "delay_samples": d,
+            "initial": "at rest at the first input, offset fitted",
+            "start": "ARX(n, n, delay + 1) poles, s = ln(z)/Ts",
+        },
+        "yh_est": yh_est,
+        "yh_val": yh_val,
+        "time_s": elapsed,
+        "n_parameters": n + m + 2,
+        "warnings": warn,
+        "model": {
+            "num": num.tolist(),
+            "den": den.tolist(),
+            "offset": c,
+            "delay": d * h,
+            "poles": [[p.real, p.imag] for p in poles],
+            "stable": bool(np.all(poles.real < 0)),
+            "success": bool(sol.success),
+            "nfev": int(sol.nfev),
+            "message": str(sol.message),
+        },
+        "parameters_note": "numerator, denominator and offset (delay fixed)",
+    }
 
 
 # --------------------------------------------------------------------------- SIPPY
@@ -473,8 +582,9 @@ def _sippy() -> Any:
     try:
         import sippy_unipi
     except ImportError as exc:
-        raise UnavailableError(f"sippy-unipi is not installed ({exc}); pip install "
-                          "sippy-unipi==1.0.1") from None
+        raise UnavailableError(
+            f"sippy-unipi is not installed ({exc}); pip install sippy-unipi==1.0.1"
+        ) from None
     return sippy_unipi
 
 
@@ -491,8 +601,11 @@ def m_sippy(ds: Dataset, quick: bool, *, method: str) -> dict[str, Any]:
     ue, ye = uc[: ds.n_est], yc[: ds.n_est]
     if method == "OE":
         theta = max(nk - 1, 0)
-        kw: dict[str, Any] = {"OE_orders": [n, n, theta], "OE_mod": "OPT",
-                              "max_iterations": 50 if quick else 200}
+        kw: dict[str, Any] = {
+            "OE_orders": [n, n, theta],
+            "OE_mod": "OPT",
+            "max_iterations": 50 if quick else 200,
+        }
         cfg: dict[str, Any] = {"nb": n, "nf": n, "nk": theta + 1, "OE_mod": "OPT"}
         n_par = 2 * n
     else:
@@ -518,8 +631,9 @@ def m_sippy(ds: Dataset, quick: bool, *, method: str) -> dict[str, Any]:
                 return scipy.signal.lfilter(num, den, u)
             from sippy_unipi import functionsetSIM
 
-            _, ys = functionsetSIM.SS_lsim_process_form(model.A, model.B, model.C, model.D,
-                                                        np.atleast_2d(u))
+            _, ys = functionsetSIM.SS_lsim_process_form(
+                model.A, model.B, model.C, model.D, np.atleast_2d(u)
+            )
             return np.asarray(ys, dtype=float).reshape(-1)
 
     yh_est, yh_val = _split_rows(ds, simulate(uc) + y_ref)
@@ -527,15 +641,25 @@ def m_sippy(ds: Dataset, quick: bool, *, method: str) -> dict[str, Any]:
         _, uv, _ = ds.val  # type: ignore[misc]
         yh_val = simulate(uv - u_ref) + y_ref
     if method == "OE":
-        info = {"numerator_z": np.squeeze(model.NUMERATOR).tolist(),
-                "denominator_z": np.squeeze(model.DENOMINATOR).tolist()}
+        info = {
+            "numerator_z": np.squeeze(model.NUMERATOR).tolist(),
+            "denominator_z": np.squeeze(model.DENOMINATOR).tolist(),
+        }
     else:
         info = {"poles_z": [[p.real, p.imag] for p in np.linalg.eigvals(model.A)]}
     cfg["initial"] = "zero state at the reference levels"
-    return {"config": cfg, "yh_est": yh_est, "yh_val": yh_val, "time_s": elapsed,
-            "n_parameters": n_par, "model": info, "warnings": warn,
-            "parameters_note": "B and F coefficients" if method == "OE"
-            else "A, B, C of the realisation (not unique)"}
+    return {
+        "config": cfg,
+        "yh_est": yh_est,
+        "yh_val": yh_val,
+        "time_s": elapsed,
+        "n_parameters": n_par,
+        "model": info,
+        "warnings": warn,
+        "parameters_note": "B and F coefficients"
+        if method == "OE"
+        else "A, B, C of the realisation (not unique)",
+    }
 
 
 # --------------------------------------------------------------------------- sysidentpy
@@ -545,10 +669,12 @@ def _sysidentpy_reason() -> str:
     except importlib.metadata.PackageNotFoundError:
         req = None
     if req is None:
-        return (f"sysidentpy is not installed here; sysidentpy 0.9.0 (and 0.8.0) require "
-                f"numpy<=2.3.5 and this environment has numpy {np.__version__}, so installing "
-                "it would downgrade numpy. Run in an environment with "
-                "pip install sysidentpy==0.9.0 (it brings numpy 2.3.5) to include it")
+        return (
+            f"sysidentpy is not installed here; sysidentpy 0.9.0 (and 0.8.0) require "
+            f"numpy<=2.3.5 and this environment has numpy {np.__version__}, so installing "
+            "it would downgrade numpy. Run in an environment with "
+            "pip install sysidentpy==0.9.0 (it brings numpy 2.3.5) to include it"
+        )
     return "sysidentpy is installed but could not be imported"
 
 
@@ -563,9 +689,15 @@ def m_sysidentpy(ds: Dataset, quick: bool) -> dict[str, Any]:
     xlag = list(range(max(nk, 1), max(nk, 1) + nb))
     u_ref, y_ref, uc, yc = _discrete_data(ds)
     ue, ye = uc[: ds.n_est], yc[: ds.n_est]
-    model = FROLS(order_selection=True, n_info_values=10 if quick else 20, ylag=na,
-                  xlag=xlag, info_criteria="aic", estimator=LeastSquares(),
-                  basis_function=Polynomial(degree=ds.narx_degree))
+    model = FROLS(
+        order_selection=True,
+        n_info_values=10 if quick else 20,
+        ylag=na,
+        xlag=xlag,
+        info_criteria="aic",
+        estimator=LeastSquares(),
+        basis_function=Polynomial(degree=ds.narx_degree),
+    )
 
     def fit() -> Any:
         with contextlib.redirect_stdout(io.StringIO()):
@@ -585,14 +717,26 @@ def m_sysidentpy(ds: Dataset, quick: bool) -> dict[str, Any]:
         yh_val = simulate(uv - u_ref, yv - y_ref) + y_ref
     terms = np.asarray(model.final_model)
     n_terms = int(terms.shape[0])
-    return {"config": {"degree": ds.narx_degree, "ylag": na, "xlag": xlag,
-                       "selection": "FROLS, AIC", "initial": "first max-lag measured outputs"},
-            "yh_est": yh_est, "yh_val": yh_val, "time_s": elapsed, "n_parameters": n_terms,
-            "warnings": warn,
-            "model": {"terms": terms.tolist(),
-                      "nonlinear_terms": int(np.sum(np.count_nonzero(terms, axis=1) > 1)),
-                      "theta": np.asarray(model.theta).reshape(-1).tolist()},
-            "parameters_note": "selected polynomial terms"}
+    return {
+        "config": {
+            "degree": ds.narx_degree,
+            "ylag": na,
+            "xlag": xlag,
+            "selection": "FROLS, AIC",
+            "initial": "first max-lag measured outputs",
+        },
+        "yh_est": yh_est,
+        "yh_val": yh_val,
+        "time_s": elapsed,
+        "n_parameters": n_terms,
+        "warnings": warn,
+        "model": {
+            "terms": terms.tolist(),
+            "nonlinear_terms": int(np.sum(np.count_nonzero(terms, axis=1) > 1)),
+            "theta": np.asarray(model.theta).reshape(-1).tolist(),
+        },
+        "parameters_note": "selected polynomial terms",
+    }
 
 
 METHODS: dict[str, Callable[[Dataset, bool], dict[str, Any]]] = {
@@ -624,10 +768,19 @@ def run_method(ds: Dataset, name: str, quick: bool) -> dict[str, Any]:
         fv = _fit(ds.y_val, out["yh_val"])
         rv = _rms(ds.y_val, out["yh_val"])
     status = "ok" if fe is not None and (ds.y_val is None or fv is not None) else "diverged"
-    row.update(status=status, config=out["config"], fit_est=fe, fit_val=fv, rms_val=rv,
-               rms_est=_rms(ds.y_est, out["yh_est"]), time_s=out["time_s"],
-               n_parameters=out["n_parameters"], parameters_note=out["parameters_note"],
-               warnings=out["warnings"], model=out["model"])
+    row.update(
+        status=status,
+        config=out["config"],
+        fit_est=fe,
+        fit_val=fv,
+        rms_val=rv,
+        rms_est=_rms(ds.y_est, out["yh_est"]),
+        time_s=out["time_s"],
+        n_parameters=out["n_parameters"],
+        parameters_note=out["parameters_note"],
+        warnings=out["warnings"],
+        model=out["model"],
+    )
     if status == "diverged":
         row["reason"] = "the free-run simulation is not finite (unstable model)"
     return row
@@ -640,26 +793,37 @@ def _score(r: dict[str, Any], metric: str) -> float | None:
 LINEAR = ("kautztwin", "arx", "scipy_oe", "sippy")
 
 
-def explain(ds: Dataset, rows: list[dict[str, Any]], ours: dict[str, Any],
-            other: dict[str, Any], metric: str) -> str:
+def explain(
+    ds: Dataset,
+    rows: list[dict[str, Any]],
+    ours: dict[str, Any],
+    other: dict[str, Any],
+    metric: str,
+) -> str:
     """Why a baseline beats a kautztwin row on this data set, from the numbers."""
     why = []
     name = other["method"]
     if name.startswith("sysidentpy") and other["model"].get("nonlinear_terms"):
-        why.append(f"a nonlinear model class (polynomial NARX, degree {ds.narx_degree}): it "
-                   "can represent the plant's nonlinearity, which no linear transfer function "
-                   "can")
+        why.append(
+            f"a nonlinear model class (polynomial NARX, degree {ds.narx_degree}): it "
+            "can represent the plant's nonlinearity, which no linear transfer function "
+            "can"
+        )
     if name in SELECTING and ds.case == "split":
         n = len(other["model"].get("candidates", [])) or "several"
         why.append(f"its structure was chosen on the validation data (best of {n})")
     if metric == "fit_val" and ours["fit_est"] is not None and other["fit_est"] is not None:
         if ours["fit_est"] >= other["fit_est"] - TIE:
-            why.append(f"kautztwin fits the estimation data better ({ours['fit_est']:.2f} % vs "
-                       f"{other['fit_est']:.2f} %) but validates worse: the extra fit to the "
-                       "estimation samples does not carry over to the validation samples")
+            why.append(
+                f"kautztwin fits the estimation data better ({ours['fit_est']:.2f} % vs "
+                f"{other['fit_est']:.2f} %) but validates worse: the extra fit to the "
+                "estimation samples does not carry over to the validation samples"
+            )
         else:
-            why.append(f"it also fits the estimation data better ({other['fit_est']:.2f} % vs "
-                       f"{ours['fit_est']:.2f} %)")
+            why.append(
+                f"it also fits the estimation data better ({other['fit_est']:.2f} % vs "
+                f"{ours['fit_est']:.2f} %)"
+            )
     elif metric == "fit_est":
         why.append("a better least-squares optimum or a richer structure on the same samples")
     po, pt = ours.get("n_parameters"), other.get("n_parameters")
@@ -667,12 +831,17 @@ def explain(ds: Dataset, rows: list[dict[str, Any]], ours: dict[str, Any],
         why.append(f"it has more parameters ({pt} vs {po})")
     if name.startswith(("arx", "sysidentpy")) and ds.case == "records":
         why.append("its test simulation starts from measured test outputs")
-    lin = [r[metric] for r in rows if r.get("status") == "ok" and r.get(metric) is not None
-           and r["method"].startswith(LINEAR)]
+    lin = [
+        r[metric]
+        for r in rows
+        if r.get("status") == "ok" and r.get(metric) is not None and r["method"].startswith(LINEAR)
+    ]
     margin = other[metric] - ours[metric]
     if len(lin) > 2 and margin < 0.25 * (max(lin) - min(lin)):
-        why.append(f"the gap ({margin:.2f} points) is small against the spread of the linear "
-                   f"models' {metric} on this data set ({min(lin):.2f}-{max(lin):.2f} %)")
+        why.append(
+            f"the gap ({margin:.2f} points) is small against the spread of the linear "
+            f"models' {metric} on this data set ({min(lin):.2f}-{max(lin):.2f} %)"
+        )
     return "; ".join(why)
 
 
@@ -683,15 +852,28 @@ def kautztwin_as_scipy_oe(ds: Dataset) -> dict[str, Any]:
     validate_from = float(ds.t[ds.n_est]) if ds.case == "split" else None
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        m = TransferFunctionEstimator(ds.tf["n_poles"], ds.tf["n_zeros"], delay=delay,
-                                      initial_state="zero",
-                                      validate_from=validate_from).fit(rec).model_
-    return {"initial_state": "zero", "delay": float(delay), "fit_est": m.fit_percent,
-            "fit_val": m.validation_fit_percent}
+        m = (
+            TransferFunctionEstimator(
+                ds.tf["n_poles"],
+                ds.tf["n_zeros"],
+                delay=delay,
+                initial_state="zero",
+                validate_from=validate_from,
+            )
+            .fit(rec)
+            .model_
+        )
+    return {
+        "initial_state": "zero",
+        "delay": float(delay),
+        "fit_est": m.fit_percent,
+        "fit_val": m.validation_fit_percent,
+    }
 
 
-def _losses(ds: Dataset, rows: list[dict[str, Any]], ours: dict[str, Any], metric: str
-            ) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+def _losses(
+    ds: Dataset, rows: list[dict[str, Any]], ours: dict[str, Any], metric: str
+) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
     so = _score(ours, metric)
     losses, comparisons = [], []
     for r in rows:
@@ -709,13 +891,21 @@ def _losses(ds: Dataset, rows: list[dict[str, Any]], ours: dict[str, Any], metri
             if r["method"] == "scipy_oe" and ours["method"] == "kautztwin" and ds.case == "split":
                 check = kautztwin_as_scipy_oe(ds)
                 loss["kautztwin_with_scipy_oe_assumptions"] = check
-                same = (abs(check["fit_est"] - r["fit_est"]) < TIE
-                        and abs(check["fit_val"] - r["fit_val"]) < TIE)
-                why += (f"; with scipy_oe's assumptions (zero initial state, delay "
-                        f"{check['delay']:g} s) kautztwin gives {check['fit_est']:.2f} % / "
-                        f"{check['fit_val']:.2f} % (est. / val.)")
-                why += (": the same optimum, so the difference is kautztwin's initial state, "
-                        "estimated on the estimation samples" if same else "")
+                same = (
+                    abs(check["fit_est"] - r["fit_est"]) < TIE
+                    and abs(check["fit_val"] - r["fit_val"]) < TIE
+                )
+                why += (
+                    f"; with scipy_oe's assumptions (zero initial state, delay "
+                    f"{check['delay']:g} s) kautztwin gives {check['fit_est']:.2f} % / "
+                    f"{check['fit_val']:.2f} % (est. / val.)"
+                )
+                why += (
+                    ": the same optimum, so the difference is kautztwin's initial state, "
+                    "estimated on the estimation samples"
+                    if same
+                    else ""
+                )
             loss["why"] = why
             losses.append(loss)
     return losses, comparisons
@@ -729,42 +919,54 @@ def verdict(ds: Dataset, rows: list[dict[str, Any]]) -> dict[str, Any]:
     auto = by.get("kautztwin_auto", {})
     losses, comparisons = _losses(ds, rows, ours, metric)
     auto_losses, _ = _losses(ds, rows, auto, metric)
-    return {"metric": metric, "kautztwin": _score(ours, metric),
-            "kautztwin_auto": _score(auto, metric),
-            "kautztwin_at_least_every_baseline": _score(ours, metric) is not None
-            and not losses,
-            "tie_tolerance": TIE, "losses": losses, "comparisons": comparisons,
-            "kautztwin_auto_losses": [{k: v for k, v in x.items()} for x in auto_losses],
-            "note": ds.note}
+    return {
+        "metric": metric,
+        "kautztwin": _score(ours, metric),
+        "kautztwin_auto": _score(auto, metric),
+        "kautztwin_at_least_every_baseline": _score(ours, metric) is not None and not losses,
+        "tie_tolerance": TIE,
+        "losses": losses,
+        "comparisons": comparisons,
+        "kautztwin_auto_losses": [{k: v for k, v in x.items()} for x in auto_losses],
+        "note": ds.note,
+    }
 
 
 def machine_info() -> dict[str, Any]:
+    """Where the numbers come from: platform, Python, package versions, load, git state.
+
+    Returns
+    -------
+    dict
+        ``platform``, ``cpu_count``, ``python``, ``executable``, ``versions`` (of
+        kautztwin and of every baseline's package; None where missing), then the
+        entries of :func:`_common.run_conditions`.
+    """
+
     def version(dist: str) -> str | None:
         try:
             return importlib.metadata.version(dist)
         except importlib.metadata.PackageNotFoundError:
             return None
 
-    def git(*args: str) -> str | None:
-        try:
-            return subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True,
-                                  timeout=10, check=True).stdout.strip()
-        except (OSError, subprocess.SubprocessError):
-            return None
-
-    status = git("status", "--porcelain")
     return {
         "platform": platform.platform(),
         "cpu_count": os.cpu_count(),
         "python": platform.python_version(),
         "executable": sys.executable,
-        "versions": {k: version(k) for k in ("kautztwin", "numpy", "scipy", "sippy-unipi",
-                                              "casadi", "control", "sysidentpy")},
-        "load_average_at_start": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
-        "thread_env": {k: os.environ[k] for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS",
-                                                  "MKL_NUM_THREADS") if k in os.environ},
-        "git_commit": git("rev-parse", "HEAD"),
-        "git_dirty": None if status is None else bool(status),
+        "versions": {
+            k: version(k)
+            for k in (
+                "kautztwin",
+                "numpy",
+                "scipy",
+                "sippy-unipi",
+                "casadi",
+                "control",
+                "sysidentpy",
+            )
+        },
+        **run_conditions(),
     }
 
 
@@ -782,8 +984,10 @@ def table(result: dict[str, Any]) -> str:
     lines = []
     for d in result["datasets"]:
         lines.append(f"\n{d['title']} [{d['name']}]: {d['split']}")
-        head = (f"{'method':16s} {'fit est %':>9s} {'fit val %':>9s} {'RMS val':>9s} "
-                f"{'time s':>7s} {'params':>6s}  structure")
+        head = (
+            f"{'method':16s} {'fit est %':>9s} {'fit val %':>9s} {'RMS val':>9s} "
+            f"{'time s':>7s} {'params':>6s}  structure"
+        )
         lines += [head, "-" * len(head)]
         for r in d["results"]:
             if r["status"] in ("unavailable", "failed"):
@@ -793,30 +997,45 @@ def table(result: dict[str, Any]) -> str:
                 f"{r['method']:16s} {_f(r['fit_est']):>9s} {_f(r['fit_val']):>9s} "
                 f"{_f(r['rms_val'], '{:.4g}'):>9s} {_f(r['time_s'], '{:.2f}'):>7s} "
                 f"{r['n_parameters']:>6d}  {_cfg(r['config'])}"
-                + ("  [DIVERGED]" if r["status"] == "diverged" else ""))
+                + ("  [DIVERGED]" if r["status"] == "diverged" else "")
+            )
         v = d["verdict"]
         if v["kautztwin_at_least_every_baseline"]:
-            lines.append(f"=> kautztwin >= every baseline on {v['metric']} "
-                         f"(ties within {TIE} points)")
+            lines.append(
+                f"=> kautztwin >= every baseline on {v['metric']} (ties within {TIE} points)"
+            )
         for loss in v["losses"]:
-            lines.append(f"=> kautztwin BELOW {loss['method']} on {v['metric']} by "
-                         f"{-loss['margin']:.2f} points: {loss['why']}")
+            lines.append(
+                f"=> kautztwin BELOW {loss['method']} on {v['metric']} by "
+                f"{-loss['margin']:.2f} points: {loss['why']}"
+            )
         if v["kautztwin_auto_losses"]:
-            lines.append("   (kautztwin_auto is below " + ", ".join(
-                f"{x['method']} ({-x['margin']:.2f})" for x in v["kautztwin_auto_losses"])
-                + f" on {v['metric']})")
+            lines.append(
+                "   (kautztwin_auto is below "
+                + ", ".join(
+                    f"{x['method']} ({-x['margin']:.2f})" for x in v["kautztwin_auto_losses"]
+                )
+                + f" on {v['metric']})"
+            )
         lines.append(f"   note: {v['note']}")
     return "\n".join(lines)
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--quick", action="store_true",
-                        help="smaller searches and iteration budgets (smoke test)")
-    parser.add_argument("--datasets", default=",".join(DATASETS),
-                        help=f"comma-separated subset of {', '.join(DATASETS)}")
-    parser.add_argument("--methods", default=",".join(METHODS),
-                        help=f"comma-separated subset of {', '.join(METHODS)}")
+    parser.add_argument(
+        "--quick", action="store_true", help="smaller searches and iteration budgets (smoke test)"
+    )
+    parser.add_argument(
+        "--datasets",
+        default=",".join(DATASETS),
+        help=f"comma-separated subset of {', '.join(DATASETS)}",
+    )
+    parser.add_argument(
+        "--methods",
+        default=",".join(METHODS),
+        help=f"comma-separated subset of {', '.join(METHODS)}",
+    )
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="JSON file to write")
     args = parser.parse_args(argv)
     names = [s for s in args.datasets.split(",") if s]
@@ -833,7 +1052,7 @@ def main(argv: list[str] | None = None) -> int:
         "benchmark": "identification",
         "command": "python benchmarks/identification.py" + (" --quick" if args.quick else ""),
         "quick": args.quick,
-        "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+        "date": utc_now(),
         "machine": machine_info(),
         "protocol": (
             "Every method gets the same estimation samples; every model is simulated in free "
@@ -845,7 +1064,8 @@ def main(argv: list[str] | None = None) -> int:
             "baselines see the signals from reference levels (the rest level before a step, "
             "else the estimation means, as MATLAB's detrend). '*_auto' and sysidentpy choose "
             "their structure; with a validation part of the record, the '*_auto' rows choose "
-            "on it (optimistic)."),
+            "on it (optimistic)."
+        ),
         "datasets": [],
     }
     for name in names:
@@ -854,24 +1074,39 @@ def main(argv: list[str] | None = None) -> int:
         for meth in methods:
             r = run_method(ds, meth, args.quick)
             rows.append(r)
-            print(f"  {name:15s} {meth:16s} {r['status']:11s} "
-                  f"fit est {_f(r.get('fit_est'))} val {_f(r.get('fit_val'))} "
-                  f"({_f(r.get('time_s'))} s)", file=sys.stderr, flush=True)
-        result["datasets"].append({
-            "name": ds.name, "title": ds.title, "files": ds.files, "sampling_time": ds.dt,
-            "split": ds.split, "n_estimation": int(ds.y_est.size),
-            "n_validation": None if ds.y_val is None else int(ds.y_val.size),
-            "results": rows, "verdict": verdict(ds, rows)})
+            print(
+                f"  {name:15s} {meth:16s} {r['status']:11s} "
+                f"fit est {_f(r.get('fit_est'))} val {_f(r.get('fit_val'))} "
+                f"({_f(r.get('time_s'))} s)",
+                file=sys.stderr,
+                flush=True,
+            )
+        result["datasets"].append(
+            {
+                "name": ds.name,
+                "title": ds.title,
+                "files": ds.files,
+                "sampling_time": ds.dt,
+                "split": ds.split,
+                "n_estimation": int(ds.y_est.size),
+                "n_validation": None if ds.y_val is None else int(ds.y_val.size),
+                "results": rows,
+                "verdict": verdict(ds, rows),
+            }
+        )
     result["total_time_s"] = time.perf_counter() - started
     result["summary"] = {
-        d["name"]: {"metric": d["verdict"]["metric"], "kautztwin": d["verdict"]["kautztwin"],
-                    "at_least_every_baseline": d["verdict"]["kautztwin_at_least_every_baseline"],
-                    "beaten_by": [x["method"] for x in d["verdict"]["losses"]]}
-        for d in result["datasets"]}
+        d["name"]: {
+            "metric": d["verdict"]["metric"],
+            "kautztwin": d["verdict"]["kautztwin"],
+            "at_least_every_baseline": d["verdict"]["kautztwin_at_least_every_baseline"],
+            "beaten_by": [x["method"] for x in d["verdict"]["losses"]],
+        }
+        for d in result["datasets"]
+    }
 
     print(table(result))
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(_clean(result), indent=1) + "\n")
+    write_json(args.out, _clean(result), indent=1)
     print(f"\nwrote {args.out} ({result['total_time_s']:.1f} s)")
     return 0
 
