@@ -16,6 +16,7 @@ starts from the network's poles.
 
 from __future__ import annotations
 
+import copy
 import functools
 import math
 import warnings
@@ -40,7 +41,13 @@ from ..exceptions import (
     NotFittedError,
 )
 from ..metrics import fit_percent
-from .estimator import _grid_hash, _load_verified, _ParamsMixin, _save_verified
+from .estimator import (
+    _fine_tune_config,
+    _grid_hash,
+    _load_verified,
+    _ParamsMixin,
+    _save_verified,
+)
 from .kautz_torch import (
     block_poles,
     kautz_functions,
@@ -486,6 +493,16 @@ def _is_int(value: Any) -> bool:
     return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
 
 
+def _spread(clean: NDArray) -> NDArray[np.float64]:
+    """Norm of every noise-free record about its mean (the fit's denominator); none may be 0."""
+    spread = np.linalg.norm(clean - clean.mean(axis=1, keepdims=True), axis=1)
+    if np.any(spread == 0):
+        raise DataError(
+            f"noise-free record {int(np.argmin(spread))} is constant; the fit is undefined"
+        )
+    return spread
+
+
 def _centre_from_kinds(
     kinds: tuple[str, ...], t: NDArray, clean: NDArray, kind: str
 ) -> NDArray[np.float64]:
@@ -823,12 +840,7 @@ class AdaptivePoleEstimator(_ParamsMixin):
         t = np.asarray(dataset.t, dtype=float)
         kind = dataset.kind
         clean = np.asarray(dataset.clean, dtype=float)
-        noisy = np.asarray(dataset.responses, dtype=float)
-        spread = np.linalg.norm(clean - clean.mean(axis=1, keepdims=True), axis=1)
-        if np.any(spread == 0):
-            raise DataError(
-                f"noise-free record {int(np.argmin(spread))} is constant; the fit is undefined"
-            )
+        _spread(clean)
         kinds, centre = self._structure(dataset.basis_poles, t, clean, kind)
         centre = _omega_floor(kinds, centre)
         train_idx, val_idx = split_indices(len(dataset), config.validation_fraction, seed)
@@ -857,17 +869,130 @@ class AdaptivePoleEstimator(_ParamsMixin):
                 weights=response_weights(t, self.weights).numpy(),
                 kind=kind,
             )
+        labels, valid = _match_labels(kinds, centre, np.asarray(dataset.poles))
+        self._train(module, dataset, config, seed, warm_start=(labels, valid))
+        return self
+
+    def fine_tune(
+        self,
+        dataset: ResponseDataset,
+        *,
+        config: TrainingConfig | Mapping[str, Any] | None = None,
+        random_state: int | None = None,
+    ) -> AdaptivePoleEstimator:
+        """A new estimator trained further, from this one's weights, on another data set.
+
+        Retraining for a new operating point: the new estimator's network is
+        a deep copy of ``network_``, trained stage by stage on the end-to-end
+        loss of :meth:`fit` (the earlier stages frozen), without the warm
+        start (the old weights are the warm start).  ``self`` is left
+        unchanged: fitted estimators are treated as immutable because a
+        running digital twin swaps them whole.
+
+        Unlike :meth:`CoefficientEstimator.fine_tune
+        <kautztwin.nn.CoefficientEstimator.fine_tune>`, the normalisation is
+        **kept**: the feature subspace, the standardisation of each stage's
+        input, the centre and the range of the poles.  The network's output
+        is not standardised (it is the poles themselves, relative to the fixed
+        centre), so re-fitting the input standardisation on records of a new
+        operating point would map them to what the old weights read as the
+        centre of the old one.  Poles outside ``pole_range`` of the centre
+        stay out of reach.
+
+        Parameters
+        ----------
+        dataset : ResponseDataset
+            Noisy records and their noise-free responses on this estimator's
+            grid ``t_``, of its ``kind_``; at least 2 records.  The labels and
+            their basis are not used.
+        config : TrainingConfig, mapping or None, default=None
+            Options of the fine-tuning run.  ``None`` uses the default
+            fine-tuning configuration, derived from ``config_``: a quarter of
+            its epochs (rounded up) and a third of its learning rate.  A
+            mapping overrides fields of that default; a
+            :class:`~kautztwin.nn.TrainingConfig` replaces it.
+        random_state : int or None, default=None
+            Seed of the split and the shuffles; ``None`` uses ``random_state``.
+
+        Returns
+        -------
+        AdaptivePoleEstimator
+            A new fitted estimator with the same constructor parameters
+            (``random_state`` set to the seed used) whose ``config_`` and
+            ``histories_`` describe the fine-tuning run
+            (``pretrain_histories_`` is empty).
+
+        Raises
+        ------
+        DataError
+            If ``dataset`` is not a :class:`ResponseDataset`, is on another
+            grid, holds another kind of response, has a constant noise-free
+            record or is too small to split, or an option is invalid.
+        NotFittedError
+            If the estimator is not fitted.
+
+        See Also
+        --------
+        fit : Training from scratch.
+        kautztwin.twin.Optimizer.retrain_estimator : Fine-tuning for the twin, validated.
+        """
+        self._check_is_fitted()
+        if not isinstance(dataset, ResponseDataset):
+            raise DataError(
+                "dataset must be a kautztwin.datasets.ResponseDataset, got "
+                f"{type(dataset).__name__}"
+            )
+        if dataset.kind != self.kind_:
+            raise DataError(
+                f"the data set holds {dataset.kind} responses but the estimator was trained on "
+                f"{self.kind_} responses"
+            )
+        self.check_grid(dataset.t)
+        seed = self.random_state if random_state is None else random_state
+        if not _is_int(seed) or seed < 0:
+            raise DataError(f"random_state must be a non-negative integer, got {seed!r}")
+        run_config = _fine_tune_config(self.config_, config)
+        new = type(self)(**{**self.get_params(), "random_state": int(seed)})
+        module = copy.deepcopy(self.network_)
+        module.requires_grad_(True)
+        new._train(module, dataset, run_config, int(seed), warm_start=None)
+        return new
+
+    def _train(
+        self,
+        module: AdaptivePoleNetwork,
+        dataset: ResponseDataset,
+        config: TrainingConfig,
+        seed: int,
+        *,
+        warm_start: tuple[NDArray[np.float64], NDArray[np.bool_]] | None,
+    ) -> None:
+        """Train ``module`` stage by stage on ``dataset`` and set the fitted attributes.
+
+        Shared by :meth:`fit` (``warm_start`` = the records' log-pole labels
+        and their validity: the stage inputs are standardised on the data and
+        each stage is warm-started on the labels) and :meth:`fine_tune`
+        (``None``: a trained module, its normalisation kept, no warm start).
+        """
+        clean = np.asarray(dataset.clean, dtype=float)
+        noisy = np.asarray(dataset.responses, dtype=float)
+        spread = _spread(clean)
+        train_idx, val_idx = split_indices(len(dataset), config.validation_fraction, seed)
+        fresh = warm_start is not None
+        n_stages = module.n_stages
         X = torch.from_numpy(noisy.astype(np.float32))
         C = torch.from_numpy(clean.astype(np.float32))
         S = torch.from_numpy(spread.astype(np.float32))
         tr, va = torch.from_numpy(train_idx), torch.from_numpy(val_idx)
         with torch.no_grad():
             Z, norm = module.coordinates(X)
-        module.stages[0].set_normalization(*_moments(Z[tr]))
-        labels, valid = _match_labels(kinds, centre, np.asarray(dataset.poles))
-        L = torch.from_numpy(np.log(labels).astype(np.float32))
-        tr_l, va_l = tr[valid[train_idx]], va[valid[val_idx]]
-        warm = bool(self.pretrain_epochs) and tr_l.numel() > 0 and va_l.numel() > 0
+        warm = False
+        if warm_start is not None:
+            module.stages[0].set_normalization(*_moments(Z[tr]))
+            labels, valid = warm_start
+            L = torch.from_numpy(np.log(labels).astype(np.float32))
+            tr_l, va_l = tr[valid[train_idx]], va[valid[val_idx]]
+            warm = bool(self.pretrain_epochs) and tr_l.numel() > 0 and va_l.numel() > 0
         pre_config = TrainingConfig(
             learning_rate=1e-3,
             max_epochs=max(1, int(self.pretrain_epochs)),
@@ -918,7 +1043,8 @@ class AdaptivePoleEstimator(_ParamsMixin):
                         for i in torch.arange(X.shape[0]).split(_PREDICT_BATCH)
                     ]
                 )
-            module.stages[k].set_normalization(*_moments(inp[tr]))
+            if fresh:
+                module.stages[k].set_normalization(*_moments(inp[tr]))
             if warm:
                 pre_histories.append(
                     train(
@@ -941,7 +1067,6 @@ class AdaptivePoleEstimator(_ParamsMixin):
             with torch.no_grad():
                 previous = module.correct(k, inp, previous)
         self._set_fitted(module, histories, pre_histories, config, int(train_idx.size))
-        return self
 
     def fit_distribution(
         self,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import json
 import math
@@ -34,6 +35,10 @@ _WEIGHTS = "weights.pt"
 _METADATA = "metadata.json"
 _PREDICT_BATCH = 4096
 _GRID_RTOL = 1e-9  # relative to the grid span: two grids closer than this are the same grid
+# default fine-tuning run (the estimators' fine_tune): a share of the epochs and of the
+# learning rate of the original configuration
+_FINE_TUNE_EPOCHS = 0.25
+_FINE_TUNE_LEARNING_RATE = 1.0 / 3.0
 
 
 def _sha256_file(path: Path) -> str:
@@ -53,8 +58,39 @@ def _canonical(meta: Mapping[str, Any]) -> bytes:
     return json.dumps(body, sort_keys=True, separators=(",", ":"), allow_nan=False).encode()
 
 
+def _check_seed(value: Any, name: str) -> int:
+    if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < 0:
+        raise DataError(f"{name} must be a non-negative integer, got {value!r}")
+    return int(value)
+
+
 def _child_seed(random_state: int, k: int) -> int:
     return int(np.random.SeedSequence([random_state, k]).generate_state(1)[0])
+
+
+def _fine_tune_config(
+    base: TrainingConfig, config: TrainingConfig | Mapping[str, Any] | None
+) -> TrainingConfig:
+    """Configuration of a fine-tuning run from the original one (the estimators' ``fine_tune``).
+
+    ``None``: ``base`` with a quarter of its epochs (rounded up) and a third of its
+    learning rate; a mapping overrides fields of that default; a ``TrainingConfig``
+    is used as it is.
+    """
+    if isinstance(config, TrainingConfig):
+        return config
+    default = base.replace(
+        max_epochs=math.ceil(base.max_epochs * _FINE_TUNE_EPOCHS),
+        learning_rate=base.learning_rate * _FINE_TUNE_LEARNING_RATE,
+    )
+    if config is None:
+        return default
+    if not isinstance(config, Mapping):
+        raise DataError(
+            "config must be a TrainingConfig, a mapping of option overrides or None; "
+            f"got {type(config).__name__}"
+        )
+    return default.replace(**dict(config))
 
 
 def _mse(module: torch.nn.Module, batch: tuple[torch.Tensor, ...]) -> torch.Tensor:
@@ -237,6 +273,7 @@ class CoefficientEstimator(_ParamsMixin):
     kautztwin.datasets.make_dataset : Labelled training data of an uncertain system.
     kautztwin.nn.PaperNetwork : The network architecture.
     kautztwin.project : The classical projection of a record, for comparison.
+    CoefficientEstimator.fine_tune : Train further on data of a new operating point.
 
     Notes
     -----
@@ -336,15 +373,7 @@ class CoefficientEstimator(_ParamsMixin):
                 f"{type(dataset).__name__}"
             )
         config = self._resolve_config()
-        if (
-            not isinstance(self.random_state, (int, np.integer))
-            or isinstance(self.random_state, bool)
-            or self.random_state < 0
-        ):
-            raise DataError(
-                f"random_state must be a non-negative integer, got {self.random_state!r}"
-            )
-        seed = int(self.random_state)
+        seed = _check_seed(self.random_state, "random_state")
         basis = dataset.basis
         if self.basis_poles is not None:
             try:
@@ -357,6 +386,144 @@ class CoefficientEstimator(_ParamsMixin):
                     f"in, {basis!r}; build the data with make_dataset(..., "
                     "basis=KautzBasis(basis_poles), ...)"
                 )
+        self._train(dataset, config, seed)
+        return self
+
+    def fine_tune(
+        self,
+        dataset: ResponseDataset,
+        *,
+        config: TrainingConfig | Mapping[str, Any] | None = None,
+        random_state: int | None = None,
+    ) -> CoefficientEstimator:
+        r"""A new estimator trained further, from this one's weights, on another data set.
+
+        Retraining for a new operating point: the networks of the new
+        estimator start from deep copies of the trained networks ``networks_``
+        and are trained on ``dataset`` with :func:`~kautztwin.nn.fit_network`
+        (same split, standardisation, seeds and early stopping as :meth:`fit`).
+        ``self`` is left unchanged: fitted estimators are treated as immutable
+        because a running digital twin swaps them whole.
+
+        The data set may be labelled in another basis (the poles of the new
+        operating point) with the same number of functions; the new
+        estimator's ``basis_`` is the data set's basis.  The input and label
+        scalers are **re-fitted** on the new training records: the networks
+        map standardised responses to standardised coefficients, and around a
+        nearby operating point that standardised map changes much less than
+        the raw one (the labels of another basis have other means and
+        spreads), so the old weights are a good start only in standardised
+        coordinates.  Keeping the old scalers would put the new labels off
+        the unit scale the weights were trained for, and a label that was
+        constant in the old data (scale about ``1e-12``) would blow up.
+
+        Parameters
+        ----------
+        dataset : ResponseDataset
+            Labelled records on this estimator's grid ``t_``, of its ``kind_``,
+            with ``n_functions_`` coefficients per record; at least 2 records.
+        config : TrainingConfig, mapping or None, default=None
+            Options of the fine-tuning run.  ``None`` uses the default
+            fine-tuning configuration, derived from ``config_``: a quarter of
+            its epochs (rounded up) and a third of its learning rate, the other
+            fields unchanged (see Notes).  A mapping overrides fields of that
+            default (e.g. ``{'max_epochs': 10}``); a :class:`TrainingConfig`
+            replaces it.
+        random_state : int or None, default=None
+            Seed of the split and the shuffles; ``None`` uses ``random_state``.
+
+        Returns
+        -------
+        CoefficientEstimator
+            A new fitted estimator with the same constructor parameters
+            (``random_state`` set to the seed used and ``basis_poles``, if it
+            was set, to the new basis) whose ``config_`` and ``histories_``
+            describe the fine-tuning run.
+
+        Raises
+        ------
+        DataError
+            If ``dataset`` is not a :class:`ResponseDataset`, is on another
+            grid, holds another kind of response or another number of
+            coefficients, is too small to split, or an option is invalid.
+        NotFittedError
+            If the estimator is not fitted.
+
+        See Also
+        --------
+        fit : Training from scratch.
+        kautztwin.twin.Optimizer.retrain_estimator : Fine-tuning for the twin, validated.
+
+        Notes
+        -----
+        The default is a short, gentle run: with early stopping restoring the
+        best epoch, a lower learning rate keeps the warm start from being
+        thrown away in the first epochs, and far fewer epochs suffice because
+        training starts near a solution.  Fine-tuning never sees the original
+        training data, so the new estimator may be worse than the old one
+        away from the new operating point; validate it there before it
+        replaces the running one (what
+        :meth:`kautztwin.twin.Optimizer.retrain_estimator` does).
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> import torch
+        >>> import kautztwin as kt
+        >>> from kautztwin.datasets import draw_parameters, make_dataset, paper_system
+        >>> from kautztwin.nn import CoefficientEstimator
+        >>> _ = torch.set_num_threads(1)
+        >>> system, t = paper_system(), np.linspace(0.0, 20.0, 100)
+        >>> data = make_dataset(system, draw_parameters(system, 0.2, 60, random_state=0),
+        ...                     kt.KautzBasis(system.poles()), t, noise=0.05, random_state=1)
+        >>> est = CoefficientEstimator(per_coefficient=False, config={"max_epochs": 3}).fit(data)
+        >>> new = est.fine_tune(data, config={"max_epochs": 2})
+        >>> new is est, new.config_.max_epochs, est.config_.max_epochs
+        (False, 2, 3)
+        """
+        self._check_is_fitted()
+        if not isinstance(dataset, ResponseDataset):
+            raise DataError(
+                f"dataset must be a kautztwin.datasets.ResponseDataset, got "
+                f"{type(dataset).__name__}"
+            )
+        if dataset.kind != self.kind_:
+            raise DataError(
+                f"the data set holds {dataset.kind} responses but the estimator was trained on "
+                f"{self.kind_} responses"
+            )
+        self.check_grid(dataset.t)
+        if dataset.n_functions != self.n_functions_:
+            raise DataError(
+                f"the data set is labelled with {dataset.n_functions} Kautz coefficients but the "
+                f"estimator predicts {self.n_functions_}; fine-tune on a basis with "
+                f"{self.n_functions_} poles"
+            )
+        seed = _check_seed(
+            self.random_state if random_state is None else random_state, "random_state"
+        )
+        run_config = _fine_tune_config(self.config_, config)
+        params = self.get_params()
+        params["random_state"] = seed
+        if self.basis_poles is not None:
+            params["basis_poles"] = np.array(dataset.basis_poles)
+        new = type(self)(**params)
+        new._train(dataset, run_config, seed, start=self.networks_)
+        return new
+
+    def _train(
+        self,
+        dataset: ResponseDataset,
+        config: TrainingConfig,
+        seed: int,
+        *,
+        start: list[PaperNetwork] | None = None,
+    ) -> None:
+        """Split, standardise, train one network per target and set the fitted attributes.
+
+        Shared by :meth:`fit` (fresh networks seeded per target) and
+        :meth:`fine_tune` (deep copies of ``start``, which stays unchanged).
+        """
         train_idx, val_idx = split_indices(len(dataset), config.validation_fraction, seed)
         X = np.asarray(dataset.responses, dtype=float)
         Y = np.asarray(dataset.coefficients, dtype=float)
@@ -373,13 +540,22 @@ class CoefficientEstimator(_ParamsMixin):
             if self.per_coefficient
             else [slice(0, n_functions)]
         )
+        if start is not None and len(start) != len(targets):
+            raise DataError(
+                f"per_coefficient={self.per_coefficient!r} needs {len(targets)} network(s) but "
+                f"the estimator to fine-tune has {len(start)}"
+            )
         networks: list[PaperNetwork] = []
         histories: list[TrainingHistory] = []
         for k, cols in enumerate(targets):
             child = _child_seed(seed, k)
-            with torch.random.fork_rng(devices=[]):
-                torch.manual_seed(child)
-                net = PaperNetwork(X.shape[1], cols.stop - cols.start)
+            if start is None:
+                with torch.random.fork_rng(devices=[]):
+                    torch.manual_seed(child)
+                    net = PaperNetwork(X.shape[1], cols.stop - cols.start)
+            else:
+                net = copy.deepcopy(start[k])
+                net.requires_grad_(True)
             history = fit_network(
                 net,
                 (Xs[tr], Ys[tr, cols]),
@@ -396,13 +572,12 @@ class CoefficientEstimator(_ParamsMixin):
             networks=networks,
             histories=histories,
             t=dataset.t,
-            basis=basis,
+            basis=dataset.basis,
             kind=dataset.kind,
             config=config,
             input_scaler=input_scaler,
             label_scaler=label_scaler,
         )
-        return self
 
     def _set_fitted(
         self,

@@ -18,6 +18,7 @@ from .history import (
 )
 from .optimize import (
     ControllerTuning,
+    EstimatorRetraining,
     MPCSettings,
     Optimizer,
     TuningCandidate,
@@ -84,6 +85,7 @@ __all__ = [
     "DigitalModel",
     "DigitalTwin",
     "discretize_model",
+    "EstimatorRetraining",
     "Event",
     "FaultConfig",
     "FitHistory",

@@ -19,6 +19,11 @@ runtime hands the work to the :class:`Optimizer`, which
   validates the winner (zero constraint violations, all solves successful,
   settled within the horizon, bounded overshoot) before the controller is
   rebuilt (:meth:`Optimizer.tune_controller`).
+* **retrains the neural estimator** on data around the new operating point:
+  labelled records of the uncertain system around the current model are
+  simulated, the estimator is fine-tuned on them from its trained weights,
+  and the candidate replaces the running estimator only if it fits fresh
+  held-out records better (:meth:`Optimizer.retrain_estimator`).
 
 :class:`MPCSettings` holds the controller design (horizon, Laguerre basis of
 the increments, weights and the plant's limits); :func:`build_mpc` turns a
@@ -29,6 +34,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -36,12 +42,16 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..approx.model import KautzModel
+from ..basis import KautzBasis
+from ..datasets import ParametricSystem, ResponseDataset, draw_parameters, make_dataset
 from ..exceptions import DataError
+from ..metrics import fit_percent
 from ..mpc import MPCProblem, simulate_closed_loop
-from .update import ModelUpdate, RecursiveKautzEstimator, Updater
+from .update import ModelUpdate, RecursiveKautzEstimator, Updater, discretize_model
 
 __all__ = [
     "ControllerTuning",
+    "EstimatorRetraining",
     "MPCSettings",
     "Optimizer",
     "TuningCandidate",
@@ -326,6 +336,67 @@ class ControllerTuning:
         }
 
 
+@dataclass(frozen=True, eq=False)
+class EstimatorRetraining:
+    """Outcome of :meth:`Optimizer.retrain_estimator`.
+
+    Parameters
+    ----------
+    accepted : bool
+        Whether the fine-tuned candidate passed the validation (it may replace
+        the running estimator).
+    estimator : object
+        The estimator to run: the candidate when accepted, else the input one.
+    candidate : object
+        The fine-tuned estimator (a new object; the input one is unchanged).
+    fit_old, fit_new : float
+        Mean fit percent, on the held-out records, of the noise-free responses
+        of the models predicted by the input estimator and by the candidate.
+    reason : str
+        Summary in words.
+    elapsed : float
+        Wall-clock seconds of the whole call (data, fine-tuning, validation).
+    train_seconds : float
+        Wall-clock seconds of the fine-tuning alone.
+    n_train, n_validation : int
+        Records simulated for the fine-tuning and for the validation.
+    """
+
+    accepted: bool
+    estimator: Any
+    candidate: Any
+    fit_old: float
+    fit_new: float
+    reason: str = ""
+    elapsed: float = 0.0
+    train_seconds: float = 0.0
+    n_train: int = 0
+    n_validation: int = 0
+
+    @property
+    def gain(self) -> float:
+        """Fit points gained by the candidate, ``fit_new - fit_old``."""
+        return self.fit_new - self.fit_old
+
+    def payload(self) -> dict[str, Any]:
+        """JSON-ready summary (for the history store).
+
+        Returns
+        -------
+        dict
+        """
+
+        def clean(v: float) -> float | None:
+            return v if math.isfinite(v) else None
+
+        return {
+            "accepted": self.accepted, "fit_old": clean(self.fit_old),
+            "fit_new": clean(self.fit_new), "reason": self.reason, "elapsed": self.elapsed,
+            "train_seconds": self.train_seconds, "n_train": self.n_train,
+            "n_validation": self.n_validation,
+        }
+
+
 # --------------------------------------------------------------------------- optimizer
 class Optimizer:
     r"""Offline re-tuning for the twin: basis poles, model consolidation, MPC weights.
@@ -359,6 +430,7 @@ class Optimizer:
     kautztwin.twin.Updater.update_from_step_test : Validates a pole re-optimisation.
     kautztwin.optimize_poles : The pole optimisation.
     build_mpc : The controller that is tuned.
+    kautztwin.nn.CoefficientEstimator.fine_tune : The estimator retraining.
 
     Notes
     -----
@@ -371,6 +443,12 @@ class Optimizer:
     limit or fails a solve and the nominal response overshoots by at most
     ``max_overshoot`` and ends within ``max_final_error`` of the set-point.
     The valid candidate with the lowest score wins.
+
+    **Estimator retraining.**  :meth:`retrain_estimator` fine-tunes a neural
+    estimator on records simulated around the current model and accepts the
+    candidate only if its predicted models fit fresh held-out records (the
+    noise-free responses) better than the running estimator's by ``margin``
+    fit points.
 
     Examples
     --------
@@ -591,11 +669,219 @@ class Optimizer:
         )
         return better, f_live, f_cur
 
+    # ------------------------------------------------------------------ estimator
+    def retrain_estimator(
+        self,
+        estimator: Any,
+        model: KautzModel,
+        *,
+        uncertainty: float | Mapping[str, float] = 0.2,
+        n_records: int = 500,
+        n_validation: int = 200,
+        noise: float = 0.05,
+        margin: float = 0.5,
+        random_state: int = 0,
+        config: Any = None,
+    ) -> EstimatorRetraining:
+        r"""Fine-tune the neural estimator around the current model, and validate it.
+
+        1. The uncertain system around ``model``:
+           :meth:`ParametricSystem.from_zpk <kautztwin.datasets.ParametricSystem.from_zpk>`
+           of its zeros, poles and gain (parameters ``'gain'``, ``'zero<i>_rate'``,
+           ``'pole<i>_rate'``, ``'pole<i>_wn'``, ``'pole<i>_zeta'``).  A discrete
+           model on a delayed basis (the twin's model versions) is first
+           converted to the continuous model whose zero-order-hold
+           discretisation it is.
+        2. ``n_records`` parameter vectors within ``uncertainty``
+           (:func:`~kautztwin.datasets.draw_parameters`) and their noisy
+           responses on the estimator's grid ``t_``, of its ``kind_``, labelled
+           in the basis of the model's poles
+           (:func:`~kautztwin.datasets.make_dataset`).
+        3. ``estimator.fine_tune(data, config=config, random_state=random_state)``
+           gives the candidate (a new estimator; the input one is unchanged).
+        4. Validation on ``n_validation`` fresh records (independent draws and
+           noise): the mean fit percent of the noise-free responses by the
+           models each estimator predicts (``predict_models``).  The candidate
+           is accepted only if it beats the running estimator by more than
+           ``margin`` points.
+
+        Parameters
+        ----------
+        estimator : CoefficientEstimator or AdaptivePoleEstimator
+            The fitted estimator the twin runs (any object with ``fine_tune``,
+            ``predict_models``, ``t_`` and ``kind_``).
+        model : KautzModel
+            The current model: continuous, or discrete on a delayed basis.
+        uncertainty : float or mapping of str to float, default=0.2
+            Relative half-width of the parameter distribution, for every
+            parameter or per parameter name (see step 1).
+        n_records : int, default=500
+            Training records simulated, ``>= 2`` (split into training and
+            validation parts by the fine-tuning).
+        n_validation : int, default=200
+            Held-out records of the acceptance test, ``>= 1``.
+        noise : float, default=0.05
+            Noise standard deviation as a fraction of each record's peak.
+        margin : float, default=0.5
+            Fit points by which the candidate must beat the running estimator.
+        random_state : int, default=0
+            Seed of the data and of the fine-tuning.
+        config : TrainingConfig, mapping or None, default=None
+            Options of the fine-tuning run (see ``estimator.fine_tune``).
+
+        Returns
+        -------
+        EstimatorRetraining
+
+        Raises
+        ------
+        DataError
+            If the estimator cannot be fine-tuned, ``model`` is not a
+            :class:`~kautztwin.KautzModel` with a continuous-time equivalent
+            and a nonzero transfer function, or an option is invalid.
+
+        See Also
+        --------
+        kautztwin.nn.CoefficientEstimator.fine_tune : The fine-tuning of the paper's estimator.
+        kautztwin.nn.AdaptivePoleEstimator.fine_tune : The fine-tuning of the adaptive one.
+        kautztwin.twin.Updater.update_from_step_test : Where the twin uses the estimator.
+
+        Notes
+        -----
+        The acceptance test compares models, not coefficients, so an old
+        estimator on the old basis and a candidate on the new one are judged
+        alike, by the fit of the noise-free response :math:`h` of every
+        held-out record,
+
+        .. math:: \mathrm{fit} = 100\,(1 - \|h - \hat h\| / \|h - \bar h\|).
+
+        The held-out records come from the same distribution as the training
+        records; the test shows that the candidate is better around the new
+        operating point, not that it is still good around the old one.
+        """
+        start = time.perf_counter()
+        for name in ("fine_tune", "predict_models"):
+            if not callable(getattr(estimator, name, None)):
+                raise DataError(
+                    f"estimator must have a {name}() method (a kautztwin.nn estimator), got "
+                    f"{type(estimator).__name__}"
+                )
+        if not hasattr(estimator, "t_") or not hasattr(estimator, "kind_"):
+            raise DataError("estimator must be fitted (it has no time grid t_ or kind_)")
+        n_records = _count(n_records, "n_records", 2)
+        n_validation = _count(n_validation, "n_validation", 1)
+        margin = _finite(margin, "margin")
+        if not math.isfinite(margin):
+            raise DataError(f"margin must be a finite number, got {margin}")
+        seed = _count(random_state, "random_state", 0)
+        cont = _continuous_model(model)
+        system = _model_system(cont)
+        t = np.asarray(estimator.t_, dtype=float)
+        kind = str(estimator.kind_)
+        draw_train, noise_train, draw_val, noise_val = (
+            np.random.default_rng(s) for s in np.random.SeedSequence([seed, 7]).spawn(4)
+        )
+
+        def records(n: int, draws: np.random.Generator, rng: np.random.Generator):
+            P = draw_parameters(system, uncertainty, n, random_state=draws)
+            return make_dataset(
+                system, P, cont.basis, t, kind=kind, noise=noise, random_state=rng
+            )
+
+        train = records(n_records, draw_train, noise_train)
+        held_out = records(n_validation, draw_val, noise_val)
+        tic = time.perf_counter()
+        candidate = estimator.fine_tune(train, config=config, random_state=seed)
+        train_seconds = time.perf_counter() - tic
+        fit_old = _mean_fit(estimator, held_out)
+        fit_new = _mean_fit(candidate, held_out)
+        accepted = math.isfinite(fit_new) and (
+            not math.isfinite(fit_old) or fit_new > fit_old + margin
+        )
+        summary = (
+            f"mean held-out fit {fit_new:.2f} % (candidate) vs {fit_old:.2f} % (running) "
+            f"on {n_validation} records"
+        )
+        reason = (
+            f"accepted: {summary}"
+            if accepted
+            else f"rejected: {summary}; the candidate must gain more than {margin:g} points"
+        )
+        return EstimatorRetraining(
+            accepted, candidate if accepted else estimator, candidate, fit_old, fit_new, reason,
+            time.perf_counter() - start, train_seconds, n_records, n_validation,
+        )
+
     def __repr__(self) -> str:
         return (
             f"Optimizer(weight_factors={self.weight_factors}, gain_margins={self.gain_margins}, "
             f"retune_poles={self.retune_poles})"
         )
+
+
+def _count(value: Any, name: str, low: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < low:
+        raise DataError(f"{name} must be an integer >= {low}, got {value!r}")
+    return int(value)
+
+
+def _continuous_model(model: Any) -> KautzModel:
+    """The model itself if continuous, else the continuous model whose ZOH discretisation it is.
+
+    The discretisation (:func:`~kautztwin.twin.update.discretize_model`) is
+    linear in the coefficients, so the continuous coefficients solve one
+    ``N x N`` system on the basis with poles ``log(xi) / dt``.
+    """
+    if not isinstance(model, KautzModel):
+        raise DataError(f"model must be a KautzModel, got {type(model).__name__}")
+    if model.dt == 0:
+        return model
+    if not model.basis.delayed:
+        raise DataError(
+            "model is on an undelayed discrete basis (a direct feedthrough); pass a continuous "
+            "model or one on a delayed basis"
+        )
+    dt = model.dt
+    poles = []
+    for i, xi in enumerate(model.poles):
+        if abs(xi.imag) <= 1e-12 * max(1.0, abs(xi)):
+            if xi.real <= 0:
+                raise DataError(
+                    f"model pole {i} = {xi.real:g} has no continuous-time equivalent (a "
+                    "discrete pole at 0 or on the negative real axis)"
+                )
+            poles.append(complex(math.log(xi.real) / dt))
+        else:
+            poles.append(complex(np.log(xi)) / dt)
+    basis = KautzBasis(poles)
+    n = model.n_functions
+    columns = [discretize_model(KautzModel(basis, e), dt) for e in np.eye(n)]
+    if not columns[0].basis.allclose(model.basis, rtol=1e-8, atol=1e-12):
+        raise DataError(
+            "model's discrete basis is not the zero-order-hold image of a continuous Kautz "
+            "basis; pass the continuous model"
+        )
+    M = np.column_stack([m.coefficients for m in columns])
+    return KautzModel(basis, np.linalg.solve(M, model.coefficients))
+
+
+def _model_system(model: KautzModel) -> ParametricSystem:
+    """The continuous model as a :class:`ParametricSystem` of its zeros, poles and gain."""
+    num, den = model.transfer_function()
+    if not np.any(num):
+        raise DataError("model has a zero transfer function; there is nothing to retrain on")
+    zeros = np.roots(num) if num.size > 1 else np.empty(0)
+    return ParametricSystem.from_zpk(zeros, model.poles, float(num[0] / den[0]), name="model")
+
+
+def _mean_fit(estimator: Any, data: ResponseDataset) -> float:
+    """Mean fit percent of the noise-free responses by the estimator's predicted models."""
+    models = estimator.predict_models(data.responses, t=data.t)
+    response = "impulse" if data.kind == "impulse" else "step"
+    yhat = np.array([getattr(m, response)(data.t) for m in models])
+    if not np.all(np.isfinite(yhat)):
+        return math.nan
+    return float(np.mean(fit_percent(data.clean, yhat)))
 
 
 def _fit(y: NDArray, yhat: NDArray) -> float:
