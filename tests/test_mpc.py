@@ -700,3 +700,63 @@ class TestLeanMove:
         mv = ref_problem.move(np.zeros(5), 1.0)
         with pytest.raises(AttributeError):
             mv.du = np.zeros(1)  # type: ignore[misc]
+
+
+class TestRowScaling:
+    """Output rows that the inputs move only a little, or not at all."""
+
+    # 1600/((s+1)(s+20)(s+80)) sampled fast: y(k+1) moves with C B ~ 3e-8
+    FAST = scipy.signal.lti([1600.0], np.poly([-1.0, -20.0, -80.0]).real)
+
+    def test_small_output_rows_are_kept(self):
+        # unscaled, DAQP took these rows for zero rows: the setup failed ("infeasible", the
+        # limits 70..130 exclude 0) or, set up without bounds, it ignored the output limits
+        plant = plant_model(self.FAST, dt=0.0005)
+        kw = dict(r=0.01, y_min=70.0, y_max=130.0, u_min=0.0, u_max=200.0)
+        problem = MPCProblem(plant, (0.9, 6), 50, **kw)
+        inside = problem.solve(np.r_[np.zeros(plant.n_states), 100.0], 105.0, u_prev=100.0)
+        assert inside.success and np.all(inside.y_pred <= 130.0 + 1e-9)
+        # above y_max, and the plant cannot come down within 25 ms: flagged, softened
+        above = problem.solve(np.r_[np.zeros(plant.n_states), 140.0], 100.0, u_prev=100.0)
+        assert not above.success and above.status == 2 and above.max_violation > 9.0
+        assert above.u_next == pytest.approx(0.0, abs=1e-6)  # down as hard as allowed
+        lean = MPCProblem(plant, (0.9, 6), 50, **kw)
+        mv = lean.move(np.r_[np.zeros(plant.n_states), 140.0], 100.0, u_prev=100.0)
+        assert not mv.success and mv.du[0] == pytest.approx(above.du[0], abs=1e-9)
+
+    def test_scaling_leaves_the_solution_unchanged(self, ref_plant):
+        # on a well-scaled problem the result equals Hildreth's on the unscaled rows
+        d = MPCProblem(ref_plant, (0.6, 6), 50, r=0.05, **LIMITS)
+        h = MPCProblem(ref_plant, (0.6, 6), 50, r=0.05, solver="hildreth", **LIMITS)
+        x = np.r_[np.zeros(4), 0.2]
+        a, b = d.solve(x, 1.0, u_prev=0.5), h.solve(x, 1.0, u_prev=0.5)
+        assert a.success and b.success
+        np.testing.assert_allclose(a.eta, b.eta, atol=1e-6)
+
+    def test_limits_the_inputs_cannot_move_are_reported(self):
+        # a one-sample delay before the output: y(k+1) does not depend on u(k) at all
+        delay = ([[0.0, 0.0], [1.0, 0.0]], [1.0, 0.0], [0.0, 1.0])
+        kw = dict(r=0.1, y_max=1.0, u_min=-5.0, u_max=5.0)
+        problem = MPCProblem(delay, (0.5, 4), 20, **kw)
+        ok = problem.solve([0.0, 0.0, 0.5], 0.8, u_prev=0.0)
+        assert ok.success and ok.status == 1
+        # y(k) = 0.5 and x1 grew by 1.5: y(k+1) = 2 > y_max, whatever the input does
+        bad = problem.solve([1.5, 0.0, 0.5], 0.8, u_prev=1.5)
+        assert not bad.success and bad.status == -101 and "cannot influence" in bad.message
+        assert bad.y_pred[0] == pytest.approx(2.0, abs=1e-12)
+        assert np.all(bad.y_pred[2:] <= 1.0 + 1e-9)  # the limits it can meet, it meets
+        mv = MPCProblem(delay, (0.5, 4), 20, **kw).move([1.5, 0.0, 0.5], 0.8, u_prev=1.5)
+        assert not mv.success and mv.status == -101
+        assert mv.du[0] == pytest.approx(bad.du[0], abs=1e-12)
+
+    def test_only_rows_the_inputs_cannot_move(self):
+        # the single constrained step is y(k+1) of the delay plant: no QP at all
+        delay = ([[0.0, 0.0], [1.0, 0.0]], [1.0, 0.0], [0.0, 1.0])
+        problem = MPCProblem(delay, (0.5, 4), 20, r=0.1, y_max=1.0, constraint_steps=1)
+        free = MPCProblem(delay, (0.5, 4), 20, r=0.1)
+        for x, ok in (([0.0, 0.0, 0.5], True), ([1.5, 0.0, 0.5], False)):
+            res, ref = problem.solve(x, 0.8), free.solve(x, 0.8)
+            assert res.success is ok and res.status == (0 if ok else -101)
+            np.testing.assert_allclose(res.eta, ref.eta, atol=1e-12)
+            mv = problem.move(x, 0.8)
+            assert mv.success is ok and mv.du[0] == pytest.approx(res.du[0], abs=1e-12)

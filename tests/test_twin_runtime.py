@@ -10,6 +10,7 @@ import sqlite3
 import subprocess
 import sys
 import textwrap
+import threading
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -19,7 +20,8 @@ import pytest
 
 import kautztwin as kt
 from kautztwin.exceptions import DataError
-from kautztwin.twin import HydraulicPlant, SampleFlag, SQLiteHistory, run_open_loop
+from kautztwin.twin import Clock, HydraulicPlant, SampleFlag, SQLiteHistory, run_open_loop
+from kautztwin.twin import runtime as runtime_module
 from kautztwin.twin.optimize import MPCSettings, Optimizer, build_mpc
 from kautztwin.twin.report import compute_metrics, rolling_fit, write_report
 from kautztwin.twin.runtime import (
@@ -200,7 +202,8 @@ _KILL_SCRIPT = textwrap.dedent("""
                                commit_every=20)
     speedup = float(sys.argv[2])
     clock = Clock.real_time(speedup) if speedup > 0 else None
-    twin = DigitalTwin(plant, cfg, history=sys.argv[1], clock=clock)
+    # compared sample by sample with an uninterrupted run: synchronous re-identification
+    twin = DigitalTwin(plant, cfg, history=sys.argv[1], clock=clock, background=False)
     run = twin.run(progress=False)
     print(run.status, run.resume["resume_k"], run.resume["replay_mismatches"])
 """).format(faults=FAULTS)
@@ -250,6 +253,94 @@ def test_kill_9_mid_run_resumes_without_losing_a_committed_sample(tmp_path):
     plant, cfg = _config()
     straight = DigitalTwin(plant, replace(cfg, commit_every=20)).run(progress=False)
     np.testing.assert_array_equal([r[2] for r in after], straight.arrays["u"])
+
+
+# --------------------------------------------------------------------------- background
+def _reid_threads() -> list[threading.Thread]:
+    return [t for t in threading.enumerate() if t.name.startswith("kautztwin-reidentify")]
+
+
+def test_background_reidentification_defaults_to_the_real_time_clock():
+    plant, cfg = _config()
+    cases = [
+        ({}, cfg, False),  # as fast as possible: synchronous, reproducible
+        ({"clock": Clock.real_time(10.0)}, cfg, True),
+        ({"clock": Clock.real_time(10.0), "background": False}, cfg, False),
+        ({}, replace(cfg, updater={**cfg.updater, "background": True}), True),
+        ({"background": False}, replace(cfg, updater={**cfg.updater, "background": True}), False),
+    ]
+    for kwargs, config, expected in cases:
+        with DigitalTwin(plant, config, **kwargs) as twin:
+            assert twin.background is expected, kwargs
+    with pytest.raises(DataError, match="background must be True, False or None"):
+        DigitalTwin(plant, cfg, background="on")
+
+
+def test_background_run_judges_attempts_later_and_close_joins_the_worker():
+    plant = make_plant("hydraulic", drift=0.4, drift_events=(10.0,), seed=0)
+    cfg = TwinConfig.for_plant(plant, duration=22.0, quick=True, static_twin=False)
+    with DigitalTwin(plant, cfg, background=True) as twin:
+        twin.start()
+        while twin.updater is None or not twin.updater.pending:  # the drift starts a recovery
+            twin.step()
+        upd = twin.updater
+        k_submitted = upd.k
+        assert upd.background and upd.wait(30)
+        state = twin.step()  # judges the finished attempt and logs it
+        assert {"model-update", "model-rejected"} & set(state.events)
+        assert (upd.model_updates[-1].k_submitted, upd.model_updates[-1].k) == (
+            k_submitted, k_submitted + 1)
+        run = twin.run(progress=False)  # the rest, with further attempts in the background
+        assert run.status == "finished"
+        fitted = [m for m in upd.model_updates
+                  if m.kind == "reidentification" and "too few samples" not in m.reason]
+        assert all(m.k > m.k_submitted for m in fitted)  # judged after they were submitted
+        assert upd.counts["attempts"] == len(upd.model_updates) + upd.pending
+        assert run.counts["reidentification_attempts"] == upd.counts["attempts"]
+    assert not upd.pending and not _reid_threads()
+
+
+def test_a_controller_that_cannot_be_built_for_a_new_version_is_kept(monkeypatch):
+    # a validated model version can still give a QP the solver refuses (seen with DAQP: "setup
+    # failed (exit flag -1)" on a nearly input-independent first output row); the loop goes on
+    plant, cfg = _config()
+    with DigitalTwin(plant, cfg) as twin:
+        twin.start()
+        while twin.k <= twin.config.n_ident:
+            twin.step()
+        running = twin.controller.problem
+
+        def refuse(model, settings, **kwargs):
+            raise DataError("DAQP setup failed (exit flag -1)")
+
+        monkeypatch.setattr(runtime_module, "build_mpc", refuse)
+        dm = twin.updater.snapshot("rls-consolidation")  # a new version for the controller
+        state = twin.step()
+        assert state.version == dm.version and "controller-rejected" in state.events
+        assert twin.controller.problem is running
+        assert "cannot be set up" in twin.result().events[-1].message
+        for _ in range(20):
+            assert math.isfinite(twin.step().command)
+
+
+def test_cli_background_flag_reaches_the_twin(capsys, tmp_path, monkeypatch):
+    from kautztwin.cli.main import main
+
+    seen = []
+
+    class Spy(DigitalTwin):
+        def run(self, *args, **kwargs):
+            seen.append(self.background)
+            raise TwinError("stopped by the test")
+
+    monkeypatch.setattr(runtime_module, "DigitalTwin", Spy)
+    base = ["twin", "run", "--plant", "hydraulic", "--quick", "--no-progress"]
+    for extra, expected in [([], False), (["--speedup", "50"], True),
+                            (["--speedup", "50", "--no-background"], False),
+                            (["--background"], True)]:
+        code = main([*base, *extra, "--out", str(tmp_path / f"o{len(seen)}")])
+        assert code == 2 and "stopped by the test" in capsys.readouterr().err
+        assert seen[-1] is expected, extra
 
 
 # --------------------------------------------------------------------------- optimizer

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import threading
 import time
 
 import numpy as np
@@ -12,6 +13,7 @@ import scipy.signal
 import kautztwin as kt
 from kautztwin.exceptions import DataError, DimensionError, NotFittedError
 from kautztwin.twin import DigitalModel, MemoryHistory, SampleFlag
+from kautztwin.twin import update as update_module
 from kautztwin.twin.plants import HydraulicPlant, run_open_loop
 from kautztwin.twin.update import (
     RecursiveKautzEstimator,
@@ -368,8 +370,190 @@ def test_updater_parameter_errors():
         Updater("model", dt=DT)
     with pytest.raises(DataError, match="amplitude"):
         Updater(twin.model_, dt=DT).update_from_step_test([0.0, 1.0, 1.5], amplitude=0.0)
+    with pytest.raises(DataError, match="min_candidate_fit"):
+        Updater(twin.model_, dt=DT, min_candidate_fit=120.0)
+    with pytest.raises(DataError, match="min_candidate_fit"):
+        Updater(twin.model_, dt=DT, min_candidate_fit=math.nan)
+    with pytest.raises(DataError, match="background"):
+        Updater(twin.model_, dt=DT, background="yes")
     dm = DigitalModel.initial(twin.model_)
     assert Updater(dm, dt=DT).digital_model is dm  # a discrete model on dt is used as is
+
+
+# --------------------------------------------------------------------------- candidate floor
+@pytest.mark.parametrize(
+    ("gain_factor", "floor", "accepted"),
+    [(0.3, 50.0, False), (0.9, 50.0, True), (0.3, None, True)],
+    ids=["below-default-floor", "above-default-floor", "no-floor"],
+)
+def test_candidate_below_the_fit_floor_is_rejected_even_when_it_beats_the_current(
+    gain_factor, floor, accepted
+):
+    # the current model has the sign of the gain wrong (fit about -100 %); the candidate has the
+    # right dynamics at a fraction of the gain: a fit of about 20 % (0.3) or 90 % (0.9)
+    true_d = discretize_model(_continuous_cascade([1.0, 5.0]), DT)
+    terrible = discretize_model(_continuous_cascade([1.0, 5.0], gain=-2.0), DT)
+    candidate = _continuous_cascade([1.0, 5.0], gain=2.0 * gain_factor)
+    store = MemoryHistory()
+    run = store.start_run({"plant": "cascade"})
+    upd = Updater(terrible, dt=DT, offset=3.0, fast_update=False, reidentify=False,
+                  estimator=_StubDNN(candidate), reid_samples=200, burn_in=100,
+                  min_candidate_fit=floor, history=store, run_id=run)
+    plant = RecursiveKautzEstimator(true_d.basis, dt=DT, coef_init=true_d.coefficients,
+                                    offset_init=3.0)
+    u = _binary(500, seed=9)
+    for uk, yk in zip(u, plant.simulate(u), strict=True):
+        upd.step(uk, yk)
+    result = upd.update_from_step_test(plant.simulate(np.ones(200)), u0=0.0, y0=3.0)
+    assert (0 < result.fit_candidate < 50) if gain_factor < 0.5 else result.fit_candidate > 80
+    assert result.fit_current < -50 and result.fit_candidate > result.fit_current + 100
+    assert result.accepted is accepted
+    assert upd.digital_model.version == (2 if accepted else 1)
+    last = store.events(run)[-1]
+    assert last.kind == ("model-update" if accepted else "model-rejected")
+    if not accepted:
+        assert "below min_candidate_fit = 50 %" in result.reason
+        assert last.message == result.reason
+
+
+# --------------------------------------------------------------------------- background
+_KW_JUMP = dict(fast_update=False, reid_samples=200, min_reid_samples=100, reid_every=20,
+                burn_in=100)
+
+
+def _jump(n: int = 1400, back_at: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The cascade with its slow pole halved at sample 500 (and restored at ``back_at``)."""
+    u = _binary(n, seed=6)
+    k = np.arange(n)[:, None]
+    slow = (k >= 500) if back_at is None else (k >= 500) & (k < back_at)
+    y, _ = _cascade(u, np.where(slow, POLES_SLOW, POLES))
+    return u, y
+
+
+def _reid_threads() -> list[threading.Thread]:
+    return [t for t in threading.enumerate() if t.name.startswith("kautztwin-reidentify")]
+
+
+@pytest.fixture
+def gate(monkeypatch):
+    """Holds every fit in the worker thread until ``release`` is set (or it is cancelled).
+
+    Yields ``(started, release)``; the fit itself is the real one, so the
+    result is what the synchronous path (in the calling thread, not held)
+    computes.
+    """
+    started, release = threading.Event(), threading.Event()
+    real_fit = update_module._fit_window
+
+    def gated(job, cancel=None):
+        if threading.current_thread() is threading.main_thread():
+            return real_fit(job, cancel)
+        started.set()
+        deadline = time.monotonic() + 10  # never hang the suite
+        while not (release.is_set() or (cancel is not None and cancel.is_set())):
+            if time.monotonic() > deadline:
+                break
+            time.sleep(0.002)
+        return real_fit(job, cancel)
+
+    monkeypatch.setattr(update_module, "_fit_window", gated)
+    yield started, release
+    release.set()
+
+
+def test_background_step_returns_before_the_fit_and_adopts_the_synchronous_candidate(gate):
+    started, release = gate
+    u, y = _jump()
+    sync = _updater(_exact_twin(), **_KW_JUMP)
+    pred_sync = []
+    for k in range(u.size):
+        r = sync.step(u[k], y[k], t=k * DT)
+        pred_sync.append(r.y_pred)
+        if r.model_update is not None and len(sync.model_updates) == 1:
+            k_attempt, first = k, r.model_update
+    assert first.accepted and first.k_submitted == first.k == k_attempt + 1
+
+    with _updater(_exact_twin(), background=True, **_KW_JUMP) as bg:
+        for k in range(k_attempt):
+            assert bg.step(u[k], y[k], t=k * DT).model_update is None
+        r = bg.step(u[k_attempt], y[k_attempt], t=k_attempt * DT)  # submits the attempt
+        assert started.wait(5)
+        # step() has returned while the fit is held: the attempt is in flight, unjudged
+        assert r.model_update is None and bg.pending and not release.is_set()
+        assert bg.counts["attempts"] == 1 and not bg.model_updates
+        for k in range(k_attempt + 1, k_attempt + 6):  # samples keep flowing meanwhile
+            r = bg.step(u[k], y[k], t=k * DT)
+            assert r.model_update is None and bg.pending and r.version == 1
+        release.set()
+        assert bg.wait(10) and bg.pending  # computed, but only step() judges it
+        k_judge = k_attempt + 6
+        r = bg.step(u[k_judge], y[k_judge], t=k_judge * DT)
+        mu = r.model_update
+        assert mu is not None and not bg.pending
+        assert mu.accepted and r.version == 2 and mu.reason == first.reason
+        assert (mu.k_submitted, mu.k) == (first.k, k_judge + 1)
+        # the same candidate, bit for bit, judged on the same held-out samples
+        np.testing.assert_array_equal(mu.candidate.poles, first.candidate.poles)
+        np.testing.assert_array_equal(mu.candidate.coefficients, first.candidate.coefficients)
+        assert (mu.offset, mu.fit_candidate, mu.fit_current) == (
+            first.offset, first.fit_candidate, first.fit_current)
+        # ... and it continues from its state at the current sample, as the synchronous one
+        pred_bg = [bg.step(u[k], y[k], t=k * DT).y_pred for k in range(k_judge + 1, k_attempt + 20)]
+        np.testing.assert_allclose(pred_bg, pred_sync[k_judge + 1:k_attempt + 20], rtol=0,
+                                   atol=1e-9)
+    assert not _reid_threads()
+
+
+def test_background_attempt_is_discarded_when_the_twin_resynchronises(gate):
+    started, release = gate
+    u, y = _jump(1000, back_at=594)  # the plant returns to the model while the fit runs
+    store = MemoryHistory()
+    run = store.start_run({"plant": "cascade"})
+    with _updater(_exact_twin(), background=True, history=store, run_id=run, **_KW_JUMP) as bg:
+        outcome = []
+        for k in range(u.size):
+            r = bg.step(u[k], y[k], t=k * DT)
+            if any(e.kind == "resync" for e in r.events):
+                assert bg.pending and started.is_set()
+                release.set()
+            if r.model_update is not None:
+                outcome.append(r.model_update)
+        assert len(outcome) == 1 and not bg.pending
+        mu = outcome[0]
+        assert not mu.accepted and mu.candidate is None
+        assert mu.reason.endswith("the twin resynchronised while it ran")
+        assert mu.k_submitted < mu.k and bg.digital_model.version == 1
+        assert bg.counts["attempts"] == 1 and bg.counts["accepted"] == 0
+    assert [e.kind for e in store.events(run)][-2:] == ["resync", "model-rejected"]
+
+
+def test_cancel_pending_and_close_stop_the_worker(gate):
+    started, release = gate
+    u, y = _jump(700)
+    bg = _updater(_exact_twin(), background=True, **_KW_JUMP)
+    k = 0
+    while not bg.pending:
+        bg.step(u[k], y[k], t=k * DT)
+        k += 1
+    assert started.wait(5) and _reid_threads()
+    assert bg.cancel_pending("reset by the operator") and not bg.cancel_pending()
+    assert bg.wait(5)  # the cancelled fit stops at its next start
+    mu = bg.step(u[k], y[k], t=k * DT).model_update
+    assert mu is not None and mu.reason.endswith("reset by the operator")
+    while not bg.pending:  # the next attempt is submitted
+        k += 1
+        bg.step(u[k], y[k], t=k * DT)
+    bg.close()  # cancels it and joins the worker
+    assert not bg.pending and not _reid_threads()
+    bg.close()  # idempotent
+    assert not release.is_set()
+    n_updates = len(bg.model_updates)
+    for j in range(k + 1, k + 40):  # after close() the accurate path runs synchronously
+        bg.step(u[j], y[j], t=j * DT)
+        assert not bg.pending
+    assert len(bg.model_updates) > n_updates
+    assert bg.model_updates[-1].k_submitted == bg.model_updates[-1].k
+    assert not _reid_threads()
 
 
 # --------------------------------------------------------------------------- acceptance

@@ -46,6 +46,7 @@ examples:
   kautztwin twin run --plant tclab --setpoints 50,40,45 --out runs/tclab
   kautztwin twin run --plant hydraulic --setpoints 20:97,45:103,70:100 --drift 0.4@30,60 \\
       --speedup 5 --out runs/live
+  kautztwin twin run --plant hydraulic --speedup 1 --no-background --out runs/sync
   kautztwin twin run --plant replay:record.csv --out runs/replay
 
 Set-points are in the plant's output units: values at equal intervals over the
@@ -97,6 +98,10 @@ def register(subparsers: argparse._SubParsersAction, common: argparse.ArgumentPa
     r.add_argument("--speedup", type=float, metavar="X",
                    help="pace the run in real time, X plant seconds per wall-clock second "
                    "(default: as fast as possible)")
+    r.add_argument("--background", action=argparse.BooleanOptionalAction, default=None,
+                   help="re-identify in a worker thread, off the sampling path (default: on "
+                   "with --speedup, where a synchronous attempt would make samples late; off "
+                   "otherwise, so that a run as fast as possible is reproducible)")
     r.add_argument("--seed", type=int, default=0,
                    help="seed of the excitation, the dither, the faults and the sensor noise "
                    "(default: %(default)s)")
@@ -193,7 +198,7 @@ def run(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     if not store.parent.is_dir():
         raise CLIError(f"--store {store}: directory {str(store.parent)!r} does not exist")
-    twin = DigitalTwin(plant, config, history=store, clock=clock)
+    twin = DigitalTwin(plant, config, history=store, clock=clock, background=args.background)
     try:
         try:
             result = twin.run(resume=not args.no_resume,

@@ -85,7 +85,9 @@ class MPCResult:
         Time reported by the QP solver itself (DAQP's ``solve_time``).
     status : int
         Solver exit flag: DAQP's (1 optimal, 2 soft-optimal, -1 infeasible, ...);
-        Hildreth 1 converged, -4 not; 0 unconstrained; -100 clipped fallback.
+        Hildreth 1 converged, -4 not; 0 unconstrained; -100 clipped fallback;
+        -101 optimal, but limits that the inputs cannot influence (their rows of
+        the constraint matrix are zero) are broken by the current state.
     max_violation : float
         Largest predicted constraint violation of the plan (0 if feasible).
 
@@ -582,6 +584,13 @@ class MPCProblem:
                 simple[nz[0]] = i
             else:
                 general.append(i)
+        # rows that the decision variables do not move at all (y(k+1) of a plant with C B = 0):
+        # DAQP cannot use a zero row, so they stay out of the QP; their limits depend on the
+        # state only and are checked after the solve (a violation is reported, not hidden)
+        row_norms = np.linalg.norm(self._Mc, axis=1)
+        zero_tol = 1e-12 * max(1.0, float(row_norms.max(initial=0.0)))
+        self._zero_idx = np.array([i for i in general if row_norms[i] <= zero_tol], dtype=np.intp)
+        general = [i for i in general if row_norms[i] > zero_tol]
         n_simple = N if np.any(simple >= 0) else 0
         # index into the bounds vector extended by one "no bound" entry (index m)
         perm = np.concatenate(
@@ -589,15 +598,29 @@ class MPCProblem:
         )
         self._perm = perm.astype(np.intp)
         A_d = np.ascontiguousarray(self._Mc[general]).reshape(len(general), N)
-        self._lo0p = np.append(self._lo0, -_INF)[perm]
-        self._hi0p = np.append(self._hi0, _INF)[perm]
-        self._Gp = np.ascontiguousarray(np.vstack([self._G, np.zeros(self._G.shape[1])])[perm])
+        # equilibrate: every general row to unit norm (bounds scaled alike).  DAQP skips rows
+        # of small norm as if they were zero (about 1e-5 here), and output rows at fast
+        # sampling are that small (y(k+1) moves with C B), so unscaled they would be ignored
+        row_scale = np.ones(perm.size)
+        row_scale[n_simple:] = 1.0 / row_norms[np.asarray(general, dtype=np.intp)]
+        A_d = A_d * row_scale[n_simple:, None]
+        self._lo0p = np.clip(np.append(self._lo0, -_INF)[perm] * row_scale, -_INF, _INF)
+        self._hi0p = np.clip(np.append(self._hi0, _INF)[perm] * row_scale, -_INF, _INF)
+        self._Gp = np.ascontiguousarray(
+            np.vstack([self._G, np.zeros(self._G.shape[1])])[perm] * row_scale[:, None]
+        )
         self._sense0 = np.zeros(perm.size, dtype=np.int32)
         self._sense_soft = np.where(np.append(self._kind, _DU)[perm] == _Y, 8, 0).astype(np.int32)
         self._A_d = A_d
         self._daqp_mod = daqp
+        if not perm.size:  # only zero rows: solve() checks them, no QP is needed
+            return
+        # set up without bounds: the real ones depend on the state and are set before every
+        # solve (the state-free parts lo0/hi0 alone mean nothing and need not be feasible)
+        self._open_hi = np.full(perm.size, _INF)
+        self._open_lo = np.full(perm.size, -_INF)
         model = daqp.Model()
-        flag, _ = model.setup(self._E, np.zeros(N), A_d, self._hi0p, self._lo0p)
+        flag, _ = model.setup(self._E, np.zeros(N), A_d, self._open_hi, self._open_lo)
         if flag < 0:  # pragma: no cover - setup fails only for non-convex E
             raise DataError(f"DAQP setup failed (exit flag {flag})")
         self._set_settings(model)
@@ -612,7 +635,12 @@ class MPCProblem:
         if self._daqp_soft is None:
             model = self._daqp_mod.Model()
             model.setup(
-                self._E, np.zeros(self._N), self._A_d, self._hi0p, self._lo0p, self._sense_soft
+                self._E,
+                np.zeros(self._N),
+                self._A_d,
+                self._open_hi,
+                self._open_lo,
+                self._sense_soft,
             )
             self._set_settings(model)
             self._daqp_soft = model
@@ -926,7 +954,7 @@ class MPCProblem:
         >>> mv.success, round(float(mv.u[0]), 6)
         (True, 0.5)
         """
-        if self._solver != "daqp" and self._m:
+        if self._m and self._daqp is None:  # Hildreth, or no row DAQP could use
             return self._move_from(self.solve(x, setpoint, u_prev=u_prev))
         v = self._lean_v
         sx, su, sr = self._lean_slices
@@ -954,7 +982,10 @@ class MPCProblem:
             else:
                 model.update(f=out[:a], bupper=out[a:b], blower=out[b:], sense=self._sense0)
             eta, _, status, info = model.solve()
-            if status != 1:
+            if status != 1 or (
+                self._zero_idx.size
+                and self._zero_row_violation(v[: sx.stop + self._plant.n_inputs]) > 0.0
+            ):
                 return self._move_from(self.solve(x, setpoint, u_prev=u_prev))
             iterations, solver_time = info["iterations"], info["solve_time"]
         du = eta @ self._lean_L0
@@ -969,6 +1000,12 @@ class MPCProblem:
     def _solve_daqp(
         self, f: NDArray, z: NDArray, e: NDArray
     ) -> tuple[NDArray, int, float, int, bool, str]:
+        if self._daqp is None:  # every row is a zero row: nothing for the QP to respect
+            eta = self._Kx @ e
+            weak = self._zero_row_violation(z)
+            if weak > 0.0:
+                return eta, 0, 0.0, -101, False, _ZERO_ROW_MESSAGE.format(weak)
+            return eta, 0, 0.0, 0, True, "unconstrained optimum"
         off = self._Gp @ z
         hi = self._hi0p + off
         lo = self._lo0p + off
@@ -980,7 +1017,11 @@ class MPCProblem:
         eta, _, flag, info = model.solve()
         iters, stime = int(info["iterations"]), float(info["solve_time"])
         if flag == 1:
-            return np.asarray(eta, dtype=float), iters, stime, 1, True, "optimal"
+            eta = np.asarray(eta, dtype=float)
+            weak = self._zero_row_violation(z) if self._zero_idx.size else 0.0
+            if weak > 0.0:
+                return eta, iters, stime, -101, False, _ZERO_ROW_MESSAGE.format(weak)
+            return eta, iters, stime, 1, True, "optimal"
         first = f"DAQP exit flag {flag} ({_DAQP_FLAGS.get(flag, 'failure')})"
         if np.any(self._kind == _Y):
             soft = self._soft_model()
@@ -1006,6 +1047,15 @@ class MPCProblem:
             False,
             f"{first}; fell back to the clipped unconstrained move",
         )
+
+    def _zero_row_violation(self, z: NDArray) -> float:
+        """Largest violation of the limits that the decision variables do not move (0 if none)."""
+        idx = self._zero_idx
+        off = self._G[idx] @ z
+        h, lw = self._hi0[idx] + off, self._lo0[idx] + off
+        over = np.maximum(-h, lw)  # the rows' value is 0
+        tol = 1e-6 * np.maximum(1.0, np.minimum(np.abs(self._hi0[idx]), np.abs(self._lo0[idx])))
+        return float(np.max(over)) if np.any(over > tol) else 0.0
 
     def _solve_hildreth(self, f: NDArray, z: NDArray) -> tuple[NDArray, int, int, bool, str]:
         lo, hi = self._bounds(z)
@@ -1074,6 +1124,11 @@ class MPCProblem:
             f"n_constraints={self._m}, solver={self._solver!r})"
         )
 
+
+_ZERO_ROW_MESSAGE = (
+    "limits at horizon steps that the inputs cannot influence are broken by the current "
+    "state (by {:.3g}); the other limits are met"
+)
 
 _DAQP_FLAGS = {
     2: "soft optimal",

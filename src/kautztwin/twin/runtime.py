@@ -299,7 +299,8 @@ class TwinConfig:
     monitor_window, monitor_stride, monitor_threshold, monitor_consecutive
         :class:`~kautztwin.twin.SyncMonitor` settings (the rolling fit).
     updater : mapping
-        Further keyword arguments of :class:`~kautztwin.twin.Updater`.
+        Further keyword arguments of :class:`~kautztwin.twin.Updater`
+        (``'background'`` among them: see :class:`DigitalTwin`).
     sanitizer_threshold, sanitizer_window, sensor_scale : float, int, float
         :class:`~kautztwin.twin.SampleSanitizer` settings (``sensor_scale`` is
         its ``min_scale``).
@@ -1083,11 +1084,22 @@ class DigitalTwin:
     optimizer : TwinOptimizer, optional
         The optimization module; :class:`~kautztwin.twin.optimize.Optimizer`
         when omitted.
+    background : bool or None, default=None
+        Run the update module's re-identification in a worker thread, off
+        the sampling path (``Updater(background=True)``).  ``None`` takes
+        ``config.updater['background']`` when set, else turns it on only
+        with a real-time ``clock``: there a synchronous attempt (tens of
+        milliseconds to seconds) would make samples late, while a run as fast
+        as possible gains nothing and stays reproducible only when
+        synchronous (the sample at which a background candidate takes over
+        depends on wall-clock time).  The replay of a resumed run is always
+        synchronous.  :meth:`close` stops the worker.
 
     Raises
     ------
     DataError
-        If the configuration does not fit the plant (another ``dt``).
+        If the configuration does not fit the plant (another ``dt``), or
+        ``background`` is not a bool or ``None``.
 
     Attributes
     ----------
@@ -1099,6 +1111,8 @@ class DigitalTwin:
         The prediction/control module.
     optimizer : TwinOptimizer
         The optimization module.
+    background : bool
+        Whether the update module re-identifies in the background (resolved).
     history : HistoryStore
         The store.
     run_id : int or None
@@ -1150,6 +1164,7 @@ class DigitalTwin:
         history: HistoryStore | str | os.PathLike[str] | None = None,
         clock: Clock | None = None,
         optimizer: TwinOptimizer | None = None,
+        background: bool | None = None,
     ) -> None:
         self.plant = plant
         self.config = config if config is not None else TwinConfig.for_plant(plant)
@@ -1160,6 +1175,11 @@ class DigitalTwin:
             )
         self.history, self.store, self._owns_history = _open_history(history)
         self.clock = clock if clock is not None else Clock()
+        if background is None:
+            background = self.config.updater.get("background", self.clock.realtime)
+        if not isinstance(background, bool | np.bool_):
+            raise DataError(f"background must be True, False or None, got {background!r}")
+        self.background = bool(background)
         self.optimizer: TwinOptimizer = optimizer if optimizer is not None else Optimizer()
         cfg = self.config
         self.controller = MPCController(input_offset=cfg.operating_input)
@@ -1283,6 +1303,8 @@ class DigitalTwin:
                 self._reading = self.plant.reset()
                 self._t_offset = self._k * cfg.dt
             self._replay_rows = None
+            if self.updater is not None:  # the replay ran synchronously
+                self.updater.background = self.background
             self.clock.start()
             self._clock_t0 = self._k * cfg.dt
         return self.state
@@ -1542,6 +1564,9 @@ class DigitalTwin:
         extra = [cfg.extra_pole_factor * slowest] if cfg.extra_pole_factor > 0 else None
         kw = dict(cfg.updater)
         kw.setdefault("min_rate", cfg.min_rate if cfg.min_rate is not None else -0.5 * slowest)
+        # a resumed run replays its committed samples synchronously (as fast as possible)
+        replaying = self._replay_rows is not None and k < self._resume_k
+        kw["background"] = self.background and not replaying
         self.updater = Updater.from_fit(
             fit, dt=cfg.dt, forgetting=cfg.forgetting, extra_poles=extra,
             monitor=self._make_monitor(), sanitizer=self._make_sanitizer(), **kw,
@@ -1619,7 +1644,8 @@ class DigitalTwin:
             if cfg.controlled and cfg.retune:
                 self._retune_controller(k, t)
             elif cfg.controlled:
-                self._rebuild_controller(dm.model, self.controller.settings or cfg.mpc, k)
+                self._rebuild_or_keep(dm.model, self.controller.settings or cfg.mpc, k, t,
+                                      {"k": int(k), "t": float(t), "version": dm.version})
 
     def _log_model_update(self, mu: ModelUpdate, k: int, t: float, kind: str = "") -> None:
         what = kind or mu.kind
@@ -1645,13 +1671,36 @@ class DigitalTwin:
         self._tunings.append(rec)
         if tuning.accepted or initial or self.controller.problem is None:
             settings = tuning.settings if tuning.accepted else (self.controller.settings or cfg.mpc)
-            self._rebuild_controller(model, settings, k)
+            if not self._rebuild_or_keep(model, settings, k, t, rec):
+                return
             self._event("controller", k, t,
                         f"MPC rebuilt on version {upd.digital_model.version}: {tuning.reason}",
                         rec)
         else:
             self._event("controller-rejected", k, t,
                         f"kept the controller: {tuning.reason}", rec)
+
+    def _rebuild_or_keep(
+        self, model: KautzModel, settings: MPCSettings, k: int, t: float, rec: dict[str, Any]
+    ) -> bool:
+        """Rebuild on a new version; keep the running controller if its QP cannot be set up.
+
+        A model version that passed validation can still give a QP that the
+        solver refuses (e.g. DAQP's setup on a nearly input-independent
+        output row); the loop must not stop for it.  Only the first build
+        (no controller yet) raises.
+        """
+        if self.controller.problem is None:
+            self._rebuild_controller(model, settings, k)
+            return True
+        try:
+            self._rebuild_controller(model, settings, k)
+        except DataError as exc:
+            self._event("controller-rejected", k, t,
+                        f"kept the controller: the MPC on version {rec.get('version')} cannot "
+                        f"be set up ({exc})", rec)
+            return False
+        return True
 
     def _rebuild_controller(self, model: KautzModel, settings: MPCSettings, k: int) -> None:
         """Build the controller; the histories end with the sample being processed."""
@@ -1774,7 +1823,14 @@ class DigitalTwin:
         )
 
     def close(self) -> None:
-        """Close the plant, and the history store when the twin opened it."""
+        """Stop the update module's worker, close the plant and the store if the twin opened it.
+
+        A background re-identification still running is cancelled (its
+        result is dropped); call :meth:`finish` first to commit the run.
+        """
+        for upd in (self.updater, self.static):
+            if upd is not None:
+                upd.close()
         self.plant.close()
         if self._owns_history:
             self.history.close()

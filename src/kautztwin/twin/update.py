@@ -29,8 +29,10 @@ period) carries ``c``; the operating-point ``offset`` is kept by the updater
 from __future__ import annotations
 
 import math
+import threading
 import time
 from collections import deque
+from concurrent.futures import CancelledError, Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
@@ -45,7 +47,7 @@ from ..approx.poles import optimize_poles
 from ..basis import KautzBasis
 from ..basis._blocks import PAIR, REAL, parse_poles
 from ..basis._propagate import discrete_functions
-from ..exceptions import DataError, DimensionError, NotFittedError
+from ..exceptions import DataError, DimensionError, KautzTwinError, NotFittedError
 from .digital_model import DigitalModel
 from .signals import SampleFlag, SampleSanitizer
 
@@ -1158,6 +1160,69 @@ def identify_output_error(
     )
 
 
+# --------------------------------------------------------------------------- accurate-path job
+@dataclass(frozen=True, eq=False)
+class _ReidJob:
+    """Frozen inputs of one re-identification attempt (copied when it is prepared).
+
+    ``u`` and ``y`` are the window with its burn-in history (read-only
+    copies); ``u[:n_est]`` is fitted (from sample ``w0`` on), the last
+    ``n_val`` samples are held out for the validation.  ``k`` is the
+    updater's sample counter when the window ended.
+    """
+
+    u: NDArray[np.float64]
+    y: NDArray[np.float64]
+    w0: int
+    n_est: int
+    n_val: int
+    poles: NDArray[np.complex128]
+    dt: float
+    input_offset: float
+    min_rate: float | None
+    max_iter: int
+    k: int
+
+
+@dataclass(frozen=True, eq=False)
+class _ReidOutcome:
+    """What a fit returns: the best start (``None`` when cancelled) and its compute time."""
+
+    fit: OutputErrorFit | None
+    elapsed: float
+
+
+def _fit_window(job: _ReidJob, cancel: threading.Event | None = None) -> _ReidOutcome:
+    """The accurate path's computation: output error from the current poles and two scalings.
+
+    A pure function of ``job`` (it runs in the worker thread in background
+    mode).  ``cancel`` is checked between the starts.
+    """
+    start = time.perf_counter()
+    best: OutputErrorFit | None = None
+    for scale in (1.0, 0.75, 1.33):
+        if cancel is not None and cancel.is_set():
+            return _ReidOutcome(None, time.perf_counter() - start)
+        fit = identify_output_error(
+            job.u[: job.n_est], job.y[: job.n_est], _scaled_poles(job.poles, scale), dt=job.dt,
+            burn_in=job.w0, input_offset=job.input_offset, min_rate=job.min_rate,
+            max_iter=job.max_iter,
+        )
+        if best is None or fit.fit_percent > best.fit_percent:
+            best = fit
+    return _ReidOutcome(best, time.perf_counter() - start)
+
+
+@dataclass
+class _Pending:
+    """A background attempt in flight."""
+
+    job: _ReidJob
+    future: Future[_ReidOutcome]
+    cancel: threading.Event
+    stale: str = ""  # why its result will be discarded ("" while it is current)
+
+
 # --------------------------------------------------------------------------- updater
 @dataclass(frozen=True, eq=False)
 class ModelUpdate:
@@ -1168,7 +1233,7 @@ class ModelUpdate:
     kind : {'reidentification', 'dnn-update', 'step-test'}
         What produced the candidate.
     k : int
-        Sample index at which it was attempted.
+        Sample index (the updater's next sample) at which it was decided.
     accepted : bool
         Whether the candidate replaced the current model.
     reason : str
@@ -1184,7 +1249,12 @@ class ModelUpdate:
     digital_model : DigitalModel or None
         The new version when accepted.
     elapsed : float
-        Wall-clock seconds the attempt took.
+        Seconds of computation the attempt took (in a background attempt:
+        the worker's fit plus the validation in :meth:`Updater.step`).
+    k_submitted : int or None, default=None
+        Sample index at which the attempt's data window ended; ``k`` for a
+        synchronous attempt, earlier for a background one (which is judged
+        at ``k``, when its result was ready).  ``None`` means ``k``.
     """
 
     kind: str
@@ -1197,6 +1267,11 @@ class ModelUpdate:
     fit_current: float
     digital_model: DigitalModel | None
     elapsed: float
+    k_submitted: int | None = None
+
+    def __post_init__(self) -> None:
+        if self.k_submitted is None:
+            object.__setattr__(self, "k_submitted", self.k)
 
     def payload(self) -> dict[str, Any]:
         """JSON-ready summary (for the history store).
@@ -1206,7 +1281,8 @@ class ModelUpdate:
         dict
         """
         return {
-            "kind": self.kind, "k": self.k, "accepted": self.accepted, "reason": self.reason,
+            "kind": self.kind, "k": self.k, "k_submitted": self.k_submitted,
+            "accepted": self.accepted, "reason": self.reason,
             "offset": self.offset, "fit_candidate": _json_float(self.fit_candidate),
             "fit_current": _json_float(self.fit_current), "elapsed": self.elapsed,
             "version": None if self.digital_model is None else self.digital_model.version,
@@ -1244,7 +1320,8 @@ class UpdateResult:
     events : tuple of SyncEvent
         Monitor events raised by this sample.
     model_update : ModelUpdate or None
-        An accurate-path attempt made at this sample.
+        An accurate-path attempt decided at this sample (in background mode:
+        one submitted earlier whose result was judged now).
     version : int
         Version of the digital model after this sample.
     elapsed : float
@@ -1292,9 +1369,12 @@ class Updater:
        the filters settled on ``burn_in`` samples of input history before
        them) except the final ``validation_fraction``.  A candidate replaces
        the current model only if it predicts those held-out samples better
-       (fit percent higher by more than ``min_improvement``).  An accepted
-       model is a new :class:`~kautztwin.twin.DigitalModel` version, the
-       estimator continues from it and the monitor's window restarts.
+       (fit percent higher by more than ``min_improvement``) *and* well
+       enough in absolute terms (fit percent at least ``min_candidate_fit``).
+       An accepted model is a new :class:`~kautztwin.twin.DigitalModel`
+       version, the estimator continues from it and the monitor's window
+       restarts.  With ``background=True`` the fit runs in a worker thread
+       and a later :meth:`step` judges it (see Notes).
 
     :meth:`update_from_step_test` is the other fast path: a trained DNN
     estimator (any object with ``predict_models(responses, t=...)`` returning
@@ -1363,6 +1443,28 @@ class Updater:
         Held-out fraction at the end of a window.
     min_improvement : float, default=0.0
         Fit percent by which a candidate must beat the current model.
+    min_candidate_fit : float or None, default=50.0
+        Absolute floor: a candidate whose held-out fit percent is below it is
+        rejected even when it beats the current model (which can be poor
+        right after a change, so beating it proves little).  Applies to
+        re-identified and step-test candidates alike; ``None`` disables the
+        floor.  The default of 50 % (prediction error at most half the
+        output's spread) rejects candidates that would only replace one bad
+        model by another, and each accepted version costs a controller
+        retune, a covariance restart and a new monitor window; it stays below
+        the held-out fits of the useful intermediate candidates seen while a
+        window still straddles an abrupt change (54 % and more in
+        ``tests/test_twin_update.py``), which a floor near the monitor's
+        threshold would refuse.
+    background : bool, default=False
+        Run the accurate path's fit in a single worker thread, off the
+        sampling path: :meth:`step` submits an attempt with a frozen copy of
+        its data window and returns at once, and a later :meth:`step` judges
+        the result on the held-out samples fixed at submission (see Notes).
+        Off by default because the sample at which a candidate is accepted
+        then depends on wall-clock time: keep it off wherever runs must be
+        reproducible.  Call :meth:`close` (or use the updater as a context
+        manager) to stop the worker.
     min_rate : float, optional
         Slowest pole rate the re-identification may choose, 1/s (see
         :func:`identify_output_error`).
@@ -1391,6 +1493,9 @@ class Updater:
         Every monitor event so far.
     model_updates : list of ModelUpdate
         Every accurate-path and step-test attempt so far.
+    background : bool
+        Whether attempts are submitted to the worker (may be switched
+        between steps; an attempt in flight is still judged).
 
     See Also
     --------
@@ -1432,9 +1537,31 @@ class Updater:
     small drifts; a drift that moves the poles out of the basis' span needs
     the accurate path or ``extra_poles``.
 
-    The accurate path runs inside :meth:`step` (a few hundred milliseconds
-    per attempt), so in a real-time loop the samples during an attempt wait
-    in the caller's queue.
+    **Synchronous and background accurate path.**  By default an attempt
+    runs inside :meth:`step` (tens of milliseconds to about two seconds,
+    depending on the window and the convergence), so in a real-time loop the
+    samples during an attempt wait in the caller's queue.  With
+    ``background=True`` the step that starts an attempt only copies the
+    window (the estimation part, the ``validation_fraction`` held out at its
+    end and the current poles) and submits the fit to a single worker
+    thread; the following steps run the fast path and the monitor as usual
+    and poll the job.  The first :meth:`step` that finds it finished judges
+    the candidate exactly as the synchronous path does - the same held-out
+    samples, against the live model, with the same ``min_improvement`` and
+    ``min_candidate_fit`` - and, when it wins, starts it from its filter
+    state at the current sample (recomputed over the samples that arrived
+    meanwhile).  The candidate is therefore the same model the synchronous
+    path would have built; only the sample at which it takes over is later
+    (:attr:`ModelUpdate.k` versus :attr:`ModelUpdate.k_submitted`).  At most
+    one attempt is in flight: a due attempt waits until the previous one has
+    been judged.  A ``'resync'`` event, another accepted model (e.g.
+    :meth:`update_from_step_test`) or :meth:`cancel_pending` makes the
+    attempt in flight stale: it is cancelled (the worker stops between the
+    fit's starts) and reported as a rejected :class:`ModelUpdate` whose
+    reason says why.  A thread is enough: a real-time loop sleeps most of
+    each period and gets the GIL back within about the interpreter's switch
+    interval (5 ms) when it wakes; measured on a 20 ms loop with the worker
+    busy all the time, no sample was late (docs/twin.md, section 4).
 
     Examples
     --------
@@ -1450,6 +1577,13 @@ class Updater:
     (0, 0.0)
     >>> upd.step(float("nan"), float("nan")).flags != 0   # a dropout does not crash
     True
+
+    In background mode the updater owns a worker thread; close it when done:
+
+    >>> with Updater(model, dt=0.05, background=True) as upd:
+    ...     _ = [upd.step(1.0, 0.0) for _ in range(10)]
+    ...     upd.pending            # nothing to re-identify yet
+    False
     """
 
     def __init__(
@@ -1477,8 +1611,10 @@ class Updater:
         burn_in: int = 250,
         validation_fraction: float = 0.3,
         min_improvement: float = 0.0,
+        min_candidate_fit: float | None = 50.0,
         min_rate: float | None = None,
         max_iter: int = 30,
+        background: bool = False,
         history: Any = None,
         run_id: int | None = None,
     ) -> None:
@@ -1547,8 +1683,24 @@ class Updater:
         if math.isnan(mi):
             raise DataError(f"min_improvement must be a number, got {min_improvement!r}")
         self.min_improvement = mi
+        if min_candidate_fit is None:
+            self.min_candidate_fit: float | None = None
+        else:
+            floor = _as_float(min_candidate_fit)
+            if not floor <= 100.0:  # also NaN
+                raise DataError(
+                    f"min_candidate_fit must be a fit percent <= 100 or None, got "
+                    f"{min_candidate_fit!r}"
+                )
+            self.min_candidate_fit = floor
         self.min_rate = None if min_rate is None else _as_float(min_rate)
         self.max_iter = _int_param(max_iter, "max_iter", 1)
+        if not isinstance(background, bool | np.bool_):
+            raise DataError(f"background must be True or False, got {background!r}")
+        self.background = bool(background)
+        self._executor: ThreadPoolExecutor | None = None
+        self._job: _Pending | None = None
+        self._closed = False
         if history is not None and run_id is None:
             raise DataError("run_id is required with history")
         self.history = history
@@ -1622,6 +1774,11 @@ class Updater:
         return self._recovery is not None
 
     @property
+    def pending(self) -> bool:
+        """Whether a background attempt is in flight (submitted, not judged yet)."""
+        return self._job is not None
+
+    @property
     def counts(self) -> dict[str, int]:
         """Counters: samples, used, skipped, late, gap, input_held, attempts, accepted (a copy)."""
         return dict(self._counts)
@@ -1647,7 +1804,9 @@ class Updater:
         """Process one sample: predict, sanitise, update, monitor, maybe re-identify.
 
         Never raises on bad samples (NaN, garbage, outliers, late or missing
-        timestamps); their flags tell what happened.
+        timestamps); their flags tell what happened.  In background mode it
+        never waits for the worker either: it judges an attempt whose fit has
+        finished, and submits a due attempt when none is in flight.
 
         Parameters
         ----------
@@ -1715,10 +1874,13 @@ class Updater:
         self._advance_k(1)
         for ev in events:
             self._on_event(ev)
-        update = None
+        update = self._poll() if self._job is not None else None
         rec = self._recovery
-        if rec is not None and self._k >= rec["next"]:
-            update = self.reidentify()
+        if rec is not None and self._k >= rec["next"] and self._job is None and update is None:
+            if self.background and not self._closed:
+                update = self._submit()
+            else:
+                update = self.reidentify()
             rec["attempts"] += 1
             rec["next"] = self._k + self.reid_every
             if rec["attempts"] >= self.max_attempts:
@@ -1739,6 +1901,7 @@ class Updater:
         self._log(ev.kind, ev.message, ev.k, ev.t, ev.payload())
         if ev.kind == "resync":
             self._recovery = None
+            self._make_stale("the twin resynchronised while it ran")
         elif ev.kind == "desync" and self.reidentify_enabled and self._recovery is None:
             mon = self.monitor
             first_bad_end = self._k - (mon.n_consecutive - 1) * mon.stride
@@ -1763,8 +1926,43 @@ class Updater:
         sl = slice(u.size - n_val, u.size)
         return _fit(y[sl], yc[sl]), _fit(y[sl], ym[sl]), Xc[-1]
 
+    def _prepare(self, n_samples: int | None) -> _ReidJob | ModelUpdate:
+        """Freeze the window of an attempt (counted), or reject it for too few samples."""
+        start = time.perf_counter()
+        self._counts["attempts"] += 1
+        u_all, y_all = self._buffer()
+        if n_samples is None:
+            n_samples = self.reid_samples
+            if self._recovery is not None:
+                n_samples = min(n_samples, self._k - self._recovery["change"])
+        n_w = min(int(n_samples), u_all.size)
+        h0 = max(0, u_all.size - n_w - self.burn_in)
+        u, y = u_all[h0:], y_all[h0:]  # fresh arrays: the buffer is a deque
+        w0 = u.size - n_w  # first sample of the window inside (u, y)
+        n_val = int(self.validation_fraction * n_w)
+        n_est = u.size - n_val
+        n_par = self._core_n + 1
+        usable = int(np.isfinite(y[w0:n_est]).sum())
+        if n_val < 10 or usable < 4 * n_par or np.isfinite(y[n_est:]).sum() < 10:
+            return self._finish(
+                "reidentification", start, False,
+                f"too few samples: {usable} usable for estimation, {n_val} for validation",
+                None, math.nan, math.nan, math.nan, None,
+            )
+        u.setflags(write=False)
+        y.setflags(write=False)
+        poles = _continuous_poles(self.estimator_.basis_)[: self._core_n]
+        return _ReidJob(
+            u=u, y=y, w0=w0, n_est=n_est, n_val=n_val, poles=poles, dt=self.dt,
+            input_offset=self.input_offset, min_rate=self.min_rate, max_iter=self.max_iter,
+            k=self._k,
+        )
+
     def reidentify(self, n_samples: int | None = None) -> ModelUpdate:
-        """Accurate path now: output-error re-identification on the recent window.
+        """Accurate path now, synchronously: output-error re-identification on the recent window.
+
+        Always runs in the caller's thread, also in background mode; an
+        accepted candidate makes a background attempt in flight stale.
 
         Parameters
         ----------
@@ -1777,43 +1975,149 @@ class Updater:
         ModelUpdate
             Accepted or not, with both validation fits.
         """
-        start = time.perf_counter()
-        self._counts["attempts"] += 1
-        u_all, y_all = self._buffer()
-        if n_samples is None:
-            n_samples = self.reid_samples
-            if self._recovery is not None:
-                n_samples = min(n_samples, self._k - self._recovery["change"])
-        n_w = min(int(n_samples), u_all.size)
-        h0 = max(0, u_all.size - n_w - self.burn_in)
-        u, y = u_all[h0:], y_all[h0:].copy()
-        w0 = u.size - n_w  # first sample of the window inside (u, y)
-        n_val = int(self.validation_fraction * n_w)
-        n_est = u.size - n_val
-        n_par = self._core_n + 1
-        usable = int(np.isfinite(y[w0:n_est]).sum())
-        if n_val < 10 or usable < 4 * n_par or np.isfinite(y[n_est:]).sum() < 10:
+        job = self._prepare(n_samples)
+        if isinstance(job, ModelUpdate):
+            return job
+        out = _fit_window(job)
+        assert out.fit is not None  # only a cancelled fit has none
+        return self._judge(
+            "reidentification", time.perf_counter() - out.elapsed, out.fit.model, out.fit.offset,
+            job.u, job.y, job.n_val,
+        )
+
+    # ------------------------------------------------------------------ background
+    def _submit(self) -> ModelUpdate | None:
+        """Submit an attempt to the worker; ``None``, or the rejection when it cannot start."""
+        job = self._prepare(None)
+        if isinstance(job, ModelUpdate):
+            return job
+        if self._executor is None:
+            self._executor = ThreadPoolExecutor(
+                max_workers=1, thread_name_prefix="kautztwin-reidentify"
+            )
+        cancel = threading.Event()
+        # looked up at call time, so that tests can slow the fit down
+        future = self._executor.submit(_fit_window, job, cancel)
+        self._job = _Pending(job, future, cancel)
+        return None
+
+    def _make_stale(self, reason: str) -> None:
+        """Mark the attempt in flight (if any) stale and ask the worker to stop early."""
+        p = self._job
+        if p is not None and not p.stale:
+            p.stale = reason
+            p.cancel.set()
+            p.future.cancel()  # succeeds only if it has not started
+
+    def _poll(self) -> ModelUpdate | None:
+        """Judge the attempt in flight if its result is ready (the caller checked one exists)."""
+        p = self._job
+        assert p is not None
+        if not p.future.done():
+            return None
+        self._job = None
+        job = p.job
+        if p.stale:
             return self._finish(
-                "reidentification", start, False,
-                f"too few samples: {usable} usable for estimation, {n_val} for validation",
-                None, math.nan, math.nan, math.nan, None,
+                "reidentification", time.perf_counter(), False,
+                f"discarded the attempt submitted at sample {job.k}: {p.stale}",
+                None, math.nan, math.nan, math.nan, None, k_submitted=job.k,
             )
-        poles = _continuous_poles(self.estimator_.basis_)[: self._core_n]
-        best: OutputErrorFit | None = None
-        for scale in (1.0, 0.75, 1.33):
-            fit = identify_output_error(
-                u[:n_est], y[:n_est], _scaled_poles(poles, scale), dt=self.dt, burn_in=w0,
-                input_offset=self.input_offset, min_rate=self.min_rate, max_iter=self.max_iter,
+        try:
+            out = p.future.result()
+        except (KautzTwinError, ValueError, ArithmeticError) as exc:
+            return self._finish(
+                "reidentification", time.perf_counter(), False,
+                f"the fit submitted at sample {job.k} failed: {exc}",
+                None, math.nan, math.nan, math.nan, None, k_submitted=job.k,
             )
-            if best is None or fit.fit_percent > best.fit_percent:
-                best = fit
-        assert best is not None
-        return self._judge("reidentification", start, best.model, best.offset, u, y, n_val)
+        assert out.fit is not None  # not cancelled: it would be stale
+        u_now = None
+        if self._k > job.k:  # the input from the window's first sample up to now
+            n_now = min(job.u.size + (self._k - job.k), len(self._u))
+            u_now = np.asarray(self._u, dtype=float)[len(self._u) - n_now:]
+        return self._judge(
+            "reidentification", time.perf_counter() - out.elapsed, out.fit.model, out.fit.offset,
+            job.u, job.y, job.n_val, u_now=u_now, k_submitted=job.k,
+        )
+
+    def cancel_pending(self, reason: str = "cancelled") -> bool:
+        """Make the background attempt in flight stale (after a reset of your own, say).
+
+        Its result is discarded when the worker stops (reported by a later
+        :meth:`step` as a rejected :class:`ModelUpdate` with ``reason``).
+
+        Parameters
+        ----------
+        reason : str, default='cancelled'
+            Why, for the rejection's reason.
+
+        Returns
+        -------
+        bool
+            Whether an attempt was in flight.
+        """
+        was = self._job is not None and not self._job.stale
+        self._make_stale(reason)
+        return was
+
+    def wait(self, timeout: float | None = None) -> bool:
+        """Block until the background attempt in flight has finished computing.
+
+        The next :meth:`step` judges it; nothing is judged here.
+
+        Parameters
+        ----------
+        timeout : float, optional
+            Most seconds to wait (no limit when omitted).
+
+        Returns
+        -------
+        bool
+            Whether no computation is outstanding any more.
+        """
+        p = self._job
+        if p is None:
+            return True
+        try:
+            p.future.exception(timeout=timeout)
+        except TimeoutError:
+            return False
+        except CancelledError:
+            pass
+        return True
+
+    def close(self) -> None:
+        """Stop the background worker: cancel the attempt in flight and join the thread.
+
+        A running fit stops at its next start (one ``identify_output_error``
+        run at most).  Idempotent; afterwards attempts run synchronously.
+        """
+        self._closed = True
+        if self._job is not None:
+            self._make_stale("the updater was closed")
+            self._job = None
+        if self._executor is not None:
+            self._executor.shutdown(wait=True, cancel_futures=True)
+            self._executor = None
+
+    def __enter__(self) -> Updater:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
 
     def _judge(
         self, kind: str, start: float, model: KautzModel, offset: float, u: NDArray,
-        y: NDArray, n_val: int,
+        y: NDArray, n_val: int, *, u_now: NDArray | None = None, k_submitted: int | None = None,
     ) -> ModelUpdate:
+        """Validate a candidate on the last ``n_val`` samples of ``u, y`` and maybe adopt it.
+
+        ``u_now``: the input from the first sample of ``u`` (or a later one,
+        when the buffer no longer holds it) up to now, when samples arrived
+        after the window (a background attempt); an accepted candidate
+        starts from its filter state at the end of ``u_now``.
+        """
         fit_c, fit_m, state = self._validate(model, offset, u, y, n_val)
         better = math.isfinite(fit_c) and (
             not math.isfinite(fit_m) or fit_c > fit_m + self.min_improvement
@@ -1823,35 +2127,49 @@ class Updater:
                 kind, start, False,
                 f"candidate fit {fit_c:.2f} % does not beat the current {fit_m:.2f} % "
                 f"on {n_val} held-out samples",
-                model, offset, fit_c, fit_m, None,
+                model, offset, fit_c, fit_m, None, k_submitted=k_submitted,
+            )
+        floor = self.min_candidate_fit
+        if floor is not None and not fit_c >= floor:
+            return self._finish(
+                kind, start, False,
+                f"candidate fit {fit_c:.2f} % on {n_val} held-out samples is below "
+                f"min_candidate_fit = {floor:g} % (the current model has {fit_m:.2f} %)",
+                model, offset, fit_c, fit_m, None, k_submitted=k_submitted,
             )
         dm = self.digital_model.with_update(model, kind, fit_c)
         self.digital_model = dm
         self._core_n = model.n_functions
+        if u_now is None:
+            u_now = u
+        else:
+            state = _states(model.basis, u_now - self.input_offset)[-1]
         wide = self._widen(model)
         if wide is not model:
-            state = _states(wide.basis, u - self.input_offset)[-1]
+            state = _states(wide.basis, u_now - self.input_offset)[-1]
         self.estimator_.reseed(wide, offset=offset, state=state, delta=self.delta)
         self._theta_frozen = self.estimator_.parameters_
         self.monitor.clear_window()
         self._model_k = self._k
         self._counts["accepted"] += 1
+        self._make_stale("another model was accepted while it ran")
         if self.history is not None:
             self.history.add_model_version(self.run_id, dm, k=self._k)
         return self._finish(
             kind, start, True,
             f"candidate fit {fit_c:.2f} % beats the current {fit_m:.2f} % on {n_val} held-out "
             "samples",
-            model, offset, fit_c, fit_m, dm,
+            model, offset, fit_c, fit_m, dm, k_submitted=k_submitted,
         )
 
     def _finish(
         self, kind: str, start: float, accepted: bool, reason: str, model: KautzModel | None,
         offset: float, fit_c: float, fit_m: float, dm: DigitalModel | None,
+        *, k_submitted: int | None = None,
     ) -> ModelUpdate:
         mu = ModelUpdate(
             kind, self._k, accepted, reason, model, offset, fit_c, fit_m, dm,
-            time.perf_counter() - start,
+            time.perf_counter() - start, k_submitted,
         )
         self.model_updates.append(mu)
         self._log(
