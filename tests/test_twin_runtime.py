@@ -486,3 +486,64 @@ def test_acceptance_full_hydraulic_drift_run():
     m = compute_metrics(DigitalTwin(plant, cfg).run(progress=False))
     print(json.dumps({k: m[k] for k in METRIC_KEYS}, indent=1))
     assert all(m["acceptance"].values()), m["acceptance"]
+
+
+class _FakeDNN:
+    """Stands in for a trained estimator: only its name matters here."""
+
+    def __init__(self, name):
+        self.name = name
+
+    def predict_models(self, responses, t=None):  # pragma: no cover - not called
+        raise NotImplementedError
+
+
+class _RetrainRecorder(Optimizer):
+    """The default optimizer with a scripted estimator retraining (no network training)."""
+
+    def __init__(self, outcome):
+        super().__init__()
+        self.outcome = outcome
+        self.calls = []
+
+    def retrain_estimator(self, estimator, model, **kwargs):
+        from kautztwin.twin import EstimatorRetraining
+
+        self.calls.append((estimator, model))
+        if isinstance(self.outcome, Exception):
+            raise self.outcome
+        new = _FakeDNN(f"{estimator.name}+1")
+        return EstimatorRetraining(
+            accepted=self.outcome, estimator=new if self.outcome else estimator, candidate=new,
+            fit_old=80.0, fit_new=90.0 if self.outcome else 70.0, reason="scripted",
+        )
+
+
+@pytest.mark.parametrize(
+    ("outcome", "event", "after"),
+    [
+        (True, "estimator-update", "dnn-0+1"),
+        (False, "estimator-rejected", "dnn-0"),
+        (DataError("the estimator has 4 functions, the model 3"), "estimator-rejected", "dnn-0"),
+    ],
+)
+def test_new_model_versions_ask_the_optimizer_to_retrain_the_estimator(outcome, event, after):
+    plant, cfg = _config()
+    optimizer = _RetrainRecorder(outcome)
+    dnn = _FakeDNN("dnn-0")
+    with DigitalTwin(plant, cfg, optimizer=optimizer, estimator=dnn) as twin:
+        twin.start()
+        while twin.k <= twin.config.n_ident:
+            twin.step()
+        assert twin.updater.dnn is dnn and not optimizer.calls  # version 1: no retraining
+        dm = twin.updater.snapshot("rls-consolidation")  # a new version
+        state = twin.step()
+        assert [(e, m.coefficients.tolist()) for e, m in optimizer.calls] == [
+            (dnn, dm.model.coefficients.tolist())]
+        assert event in state.events
+        assert twin.updater.dnn.name == after and twin.estimator is twin.updater.dnn
+        for _ in range(5):
+            assert math.isfinite(twin.step().command)
+        metrics = compute_metrics(twin.result())
+    accepted = int(event == "estimator-update")
+    assert metrics["estimator_retrainings"] == {"accepted": accepted, "rejected": 1 - accepted}

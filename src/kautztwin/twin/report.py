@@ -211,6 +211,10 @@ def compute_metrics(run: TwinRun) -> dict[str, Any]:
         "model_version": int(a["version"][-1]) if n else 0,
         "model_versions": [dict(v) for v in run.versions],
         "reidentification_ms": _stats(np.array([1e3 * e.payload["elapsed"] for e in attempts])),
+        "estimator_retrainings": {
+            "accepted": sum(e.kind == "estimator-update" for e in run.events),
+            "rejected": sum(e.kind == "estimator-rejected" for e in run.events),
+        },
     })
     # control
     cl = np.arange(n) >= k0

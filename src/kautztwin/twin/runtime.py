@@ -52,7 +52,7 @@ from ..exceptions import DataError, KautzTwinError
 from ..mpc import MPCProblem, MPCResult
 from .digital_model import DigitalModel
 from .history import HistoryStore, SQLiteHistory
-from .optimize import ControllerTuning, MPCSettings, Optimizer, build_mpc
+from .optimize import ControllerTuning, EstimatorRetraining, MPCSettings, Optimizer, build_mpc
 from .plants import Clock, HydraulicPlant, Plant, Reading, ReplayPlant, TCLabPlant
 from .signals import SampleFlag, SampleSanitizer
 from .update import (
@@ -160,6 +160,10 @@ class TwinOptimizer(Protocol):
         y: ArrayLike,
     ) -> tuple[bool, float, float]:
         """Whether the live fast-path model beats the current version on recent data."""
+        ...
+
+    def retrain_estimator(self, estimator: Any, model: KautzModel) -> EstimatorRetraining:
+        """Fine-tune the DNN estimator around a new model version and validate it."""
         ...
 
 
@@ -1094,6 +1098,16 @@ class DigitalTwin:
         synchronous (the sample at which a background candidate takes over
         depends on wall-clock time).  The replay of a resumed run is always
         synchronous.  :meth:`close` stops the worker.
+    estimator : object, optional
+        A trained DNN estimator (``kautztwin.nn.CoefficientEstimator`` or
+        ``AdaptivePoleEstimator``, or any object with ``predict_models`` and
+        ``fine_tune``) for the update module's step-test fast path
+        (:meth:`Updater.update_from_step_test`).  With ``config.retune``, each
+        new model version asks the optimizer to fine-tune it around the new
+        operating point (:meth:`Optimizer.retrain_estimator`); a validated
+        candidate replaces it (events ``'estimator-update'`` /
+        ``'estimator-rejected'``).  It must have as many basis functions as the
+        twin's models.
 
     Raises
     ------
@@ -1165,8 +1179,10 @@ class DigitalTwin:
         clock: Clock | None = None,
         optimizer: TwinOptimizer | None = None,
         background: bool | None = None,
+        estimator: Any = None,
     ) -> None:
         self.plant = plant
+        self.estimator = estimator
         self.config = config if config is not None else TwinConfig.for_plant(plant)
         if abs(self.config.dt - float(plant.dt)) > 1e-9 * plant.dt:
             raise DataError(
@@ -1567,6 +1583,8 @@ class DigitalTwin:
         # a resumed run replays its committed samples synchronously (as fast as possible)
         replaying = self._replay_rows is not None and k < self._resume_k
         kw["background"] = self.background and not replaying
+        if self.estimator is not None:
+            kw["estimator"] = self.estimator
         self.updater = Updater.from_fit(
             fit, dt=cfg.dt, forgetting=cfg.forgetting, extra_poles=extra,
             monitor=self._make_monitor(), sanitizer=self._make_sanitizer(), **kw,
@@ -1641,11 +1659,28 @@ class DigitalTwin:
         if dm.version != self._version:
             self._version = dm.version
             self._store_version(dm, k, t, upd.offset)
+            if cfg.retune and upd.dnn is not None:
+                self._retrain_estimator(dm, k, t)
             if cfg.controlled and cfg.retune:
                 self._retune_controller(k, t)
             elif cfg.controlled:
                 self._rebuild_or_keep(dm.model, self.controller.settings or cfg.mpc, k, t,
                                       {"k": int(k), "t": float(t), "version": dm.version})
+
+    def _retrain_estimator(self, dm: DigitalModel, k: int, t: float) -> None:
+        """Fine-tune the DNN around the new version; keep the old one unless the new one wins."""
+        upd = self.updater
+        assert upd is not None
+        try:
+            rt = self.optimizer.retrain_estimator(upd.dnn, dm.model)
+        except KautzTwinError as exc:  # e.g. the estimator has another number of functions
+            self._event("estimator-rejected", k, t, f"estimator not retrained: {exc}", {})
+            return
+        self._event("estimator-update" if rt.accepted else "estimator-rejected", k, t,
+                    f"estimator retraining for version {dm.version}: {rt.reason}", rt.payload())
+        if rt.accepted:
+            upd.dnn = rt.estimator
+            self.estimator = rt.estimator
 
     def _log_model_update(self, mu: ModelUpdate, k: int, t: float, kind: str = "") -> None:
         what = kind or mu.kind
