@@ -22,7 +22,7 @@ import kautztwin as kt
 from kautztwin.exceptions import DataError
 from kautztwin.twin import Clock, HydraulicPlant, SampleFlag, SQLiteHistory, run_open_loop
 from kautztwin.twin import runtime as runtime_module
-from kautztwin.twin.optimize import MPCSettings, Optimizer, build_mpc
+from kautztwin.twin.optimize import ControllerTuning, MPCSettings, Optimizer, build_mpc
 from kautztwin.twin.report import compute_metrics, rolling_fit, write_report
 from kautztwin.twin.runtime import (
     DigitalTwin,
@@ -343,6 +343,224 @@ def test_cli_background_flag_reaches_the_twin(capsys, tmp_path, monkeypatch):
         assert seen[-1] is expected, extra
 
 
+# ------------------------------------------------------------------ background optimization
+def _opt_threads() -> list[threading.Thread]:
+    return [t for t in threading.enumerate() if t.name.startswith("kautztwin-optimize")]
+
+
+def _quiet_config():
+    """The quick hydraulic profile without re-identification: versions come only from the test."""
+    plant = make_plant("hydraulic", seed=0)
+    cfg = TwinConfig.for_plant(plant, duration=10.0, quick=True, static_twin=False)
+    return plant, replace(cfg, updater={**cfg.updater, "reidentify": False})
+
+
+class _ScriptedOptimizer(Optimizer):
+    """Scripted weight tunings: the first keeps the weights, later ones multiply r by 5.
+
+    With ``hold``, every tuning after the first waits in the worker for ``release``;
+    with ``accept=False`` the later ones are rejected.
+    """
+
+    def __init__(self, *, hold=False, accept=True):
+        super().__init__()
+        self.hold, self.accept = hold, accept
+        self.entered, self.release = threading.Event(), threading.Event()
+        self.models = []
+        self.threads = []
+
+    def tune_controller(self, model, settings, *, step, u_op=None, y_op=0.0):
+        n = len(self.models)
+        self.models.append(model)
+        self.threads.append(threading.current_thread().name)
+        if n and self.hold:
+            self.entered.set()
+            if not self.release.wait(30):  # pragma: no cover - only when the test fails
+                raise TwinError("the test never released the tuning")
+        if n and not self.accept:
+            return ControllerTuning(False, settings, reason=f"scripted rejection {n}")
+        new = settings if n == 0 else settings.with_weight(5 * settings.r)
+        return ControllerTuning(True, new, reason=f"scripted tuning {n}")
+
+
+def _to_closed_loop(twin):
+    """Start and run through the identification; apply the first version's tuning."""
+    twin.start()
+    while twin.k <= twin.config.n_ident:
+        twin.step()
+    if twin.background:
+        assert twin.optimizing and twin.wait_optimization(30)
+        assert "controller" in twin.step().events
+    else:
+        twin.step()
+
+
+def _step_until(twin, kind, n=100):
+    for _ in range(n):
+        assert twin.wait_optimization(30)
+        state = twin.step()
+        if kind in state.events:
+            return state
+    raise AssertionError(f"no {kind!r} event in {n} samples")  # pragma: no cover
+
+
+def _last(twin, prefix):
+    return [e for e in twin.result().events if e.kind.startswith(prefix)][-1]
+
+
+def _same_state(ctl, reference):
+    for name in ("_xv", "_xv_prev", "_xd"):
+        np.testing.assert_array_equal(getattr(ctl, name), getattr(reference, name), err_msg=name)
+
+
+def _rebuilt(twin, model, settings):
+    """A controller rebuilt on the whole history (what the synchronous path would run)."""
+    a = twin.result().arrays
+    ref = MPCController(input_offset=twin.config.operating_input)
+    ref.rebuild(model, settings, a["command"], a["dither"])
+    return ref
+
+
+def test_background_retuning_runs_off_the_sampling_path_and_is_applied_later():
+    twins = {}
+    for background in (False, True):
+        plant, cfg = _quiet_config()
+        twins[background] = DigitalTwin(plant, cfg, optimizer=_ScriptedOptimizer(hold=background),
+                                        background=background)
+    sync, twin = twins[False], twins[True]
+    opt, mpc = twin.optimizer, twin.config.mpc
+    try:
+        for tw in (sync, twin):
+            _to_closed_loop(tw)
+        # the first version ran on the configured weights until its tuning (the same) came in
+        assert opt.threads[0].startswith("kautztwin-optimize")
+        np.testing.assert_array_equal(twin.result().arrays["u"], sync.result().arrays["u"])
+        dm_sync = sync.updater.snapshot("rls-consolidation")
+        dm = twin.updater.snapshot("rls-consolidation")
+        k_new = twin.k
+        assert "controller" in sync.step().events
+        state = twin.step()  # submits the retuning and returns while the worker holds it
+        assert "model-version" in state.events and "controller" not in state.events
+        assert opt.entered.wait(30) and twin.optimizing
+        for _ in range(10):  # the loop goes on: the new model with the running weights
+            state = twin.step()
+            assert math.isfinite(state.command) and state.version == dm.version
+        assert twin.controller.model is dm.model and twin.controller.settings == mpc
+        _same_state(twin.controller, _rebuilt(twin, dm.model, mpc))
+        opt.release.set()
+        state = _step_until(twin, "controller")
+        assert not twin.optimizing
+        ev_sync, ev = _last(sync, "controller"), _last(twin, "controller")
+        assert (ev.kind, ev.message) == (ev_sync.kind, ev_sync.message) == (
+            "controller", f"MPC rebuilt on version {dm.version}: scripted tuning 1")
+        assert (ev.k, ev.payload["k_submitted"]) == (state.k, k_new) and state.k > k_new + 10
+        rec_sync, rec = sync.result().tunings[-1], twin.result().tunings[-1]
+        assert {key: rec[key] for key in rec_sync if key not in ("k", "t")} == {
+            key: val for key, val in rec_sync.items() if key not in ("k", "t")}
+        assert rec["r"] == 5 * mpc.r and rec["version"] == dm_sync.version == dm.version
+        assert twin.controller.model is dm.model
+        assert twin.controller.settings == sync.controller.settings != mpc
+        _same_state(twin.controller, _rebuilt(twin, dm.model, twin.controller.settings))
+        assert math.isfinite(twin.step().command)
+    finally:
+        opt.release.set()
+        for tw in twins.values():
+            tw.close()
+    assert not _opt_threads()
+
+
+def test_background_retuning_of_a_superseded_version_is_discarded():
+    plant, cfg = _quiet_config()
+    opt = _ScriptedOptimizer(hold=True)
+    with DigitalTwin(plant, cfg, optimizer=opt, background=True) as twin:
+        try:
+            _to_closed_loop(twin)
+            v2 = twin.updater.snapshot("rls-consolidation")
+            k2 = twin.k
+            twin.step()
+            assert opt.entered.wait(30)  # version 2's tuning runs (held)
+            v3 = twin.updater.snapshot("rls-consolidation")
+            state = twin.step()
+            assert {"model-version", "controller-rejected"} <= set(state.events)
+            ev = _last(twin, "controller-rejected")
+            assert ev.message == (f"discarded the MPC retuning for version {v2.version} "
+                                  f"(submitted at sample {k2}): version {v3.version} superseded it")
+            assert ev.payload["version"] == v2.version
+            assert twin.optimizing  # version 3 waits until the worker is free
+        finally:
+            opt.release.set()
+        state = _step_until(twin, "controller")
+        assert _last(twin, "controller").message.startswith(f"MPC rebuilt on version {v3.version}")
+        assert [t["version"] for t in twin.result().tunings] == [1, v3.version]
+        assert opt.models[1:] == [v2.model, v3.model]
+        assert twin.controller.model is v3.model and not twin.optimizing
+    assert not _opt_threads()
+
+
+def test_background_rejected_tuning_returns_to_the_validated_controller():
+    plant, cfg = _quiet_config()
+    with DigitalTwin(plant, cfg, optimizer=_ScriptedOptimizer(accept=False),
+                     background=True) as twin:
+        _to_closed_loop(twin)
+        validated = twin.controller.model
+        dm = twin.updater.snapshot("rls-consolidation")
+        state = _step_until(twin, "controller-rejected")
+        assert _last(twin, "controller-rejected").message == (
+            "kept the controller: scripted rejection 1")
+        # synchronously the controller would never have left the validated version
+        assert twin.controller.model is validated is not dm.model
+        _same_state(twin.controller, _rebuilt(twin, validated, cfg.mpc))
+        assert math.isfinite(twin.step().command) and state.version == dm.version
+
+
+def test_background_controller_that_cannot_be_built_is_kept(monkeypatch):
+    plant, cfg = _quiet_config()
+    with DigitalTwin(plant, cfg, optimizer=_ScriptedOptimizer(), background=True) as twin:
+        _to_closed_loop(twin)
+        running = twin.controller.problem
+
+        def refuse(model, settings, **kwargs):
+            raise DataError("DAQP setup failed (exit flag -1)")
+
+        monkeypatch.setattr(runtime_module, "build_mpc", refuse)  # in the worker too
+        dm = twin.updater.snapshot("rls-consolidation")
+        state = _step_until(twin, "controller-rejected")
+        assert state.version == dm.version and twin.controller.problem is running
+        assert "cannot be set up" in _last(twin, "controller-rejected").message
+        for _ in range(5):
+            assert math.isfinite(twin.step().command)
+
+
+def test_close_joins_the_optimization_worker_with_a_job_in_flight():
+    plant, cfg = _quiet_config()
+    opt = _ScriptedOptimizer(hold=True)
+    twin = DigitalTwin(plant, cfg, optimizer=opt, background=True)
+    _to_closed_loop(twin)
+    twin.updater.snapshot("rls-consolidation")
+    twin.step()
+    assert opt.entered.wait(30) and twin.optimizing and _opt_threads()
+    timer = threading.Timer(0.2, opt.release.set)  # the tuning cannot be interrupted
+    timer.start()
+    try:
+        twin.close()  # waits for the running tuning, drops its result
+    finally:
+        timer.cancel()
+        opt.release.set()
+    assert not twin.optimizing and not _opt_threads()
+    assert [t["version"] for t in twin.result().tunings] == [1]  # its result was dropped
+
+
+def test_synchronous_twin_starts_no_optimization_worker():
+    plant, cfg = _quiet_config()
+    opt = _ScriptedOptimizer()
+    with DigitalTwin(plant, cfg, optimizer=opt) as twin:
+        _to_closed_loop(twin)
+        twin.updater.snapshot("rls-consolidation")
+        assert "controller" in twin.step().events  # applied in the step, as before
+        assert not twin.optimizing and twin.wait_optimization(0)
+        assert opt.threads == ["MainThread", "MainThread"] and not _opt_threads()
+
+
 # --------------------------------------------------------------------------- optimizer
 def _first_order(pole=0.9, dt=0.1):
     return kt.KautzModel(kt.KautzBasis([pole], dt=dt, delayed=True), [1.0])
@@ -547,3 +765,51 @@ def test_new_model_versions_ask_the_optimizer_to_retrain_the_estimator(outcome, 
         metrics = compute_metrics(twin.result())
     accepted = int(event == "estimator-update")
     assert metrics["estimator_retrainings"] == {"accepted": accepted, "rejected": 1 - accepted}
+
+
+class _HeldRetraining(_RetrainRecorder):
+    """The scripted retraining, held in the worker until ``release`` is set."""
+
+    def __init__(self, outcome):
+        super().__init__(outcome)
+        self.entered, self.release = threading.Event(), threading.Event()
+
+    def retrain_estimator(self, estimator, model, **kwargs):
+        self.entered.set()
+        if not self.release.wait(30):  # pragma: no cover - only when the test fails
+            raise TwinError("the test never released the retraining")
+        return super().retrain_estimator(estimator, model, **kwargs)
+
+
+@pytest.mark.parametrize(
+    ("outcome", "event", "after"),
+    [
+        (True, "estimator-update", "dnn-0+1"),
+        (DataError("the estimator has 4 functions, the model 3"), "estimator-rejected", "dnn-0"),
+    ],
+    ids=["accepted", "error"],
+)
+def test_background_estimator_retraining_is_applied_later(outcome, event, after):
+    plant, cfg = _quiet_config()
+    optimizer = _HeldRetraining(outcome)
+    dnn = _FakeDNN("dnn-0")
+    with DigitalTwin(plant, cfg, optimizer=optimizer, estimator=dnn, background=True) as twin:
+        try:
+            _to_closed_loop(twin)
+            dm = twin.updater.snapshot("rls-consolidation")
+            k_new = twin.k
+            twin.step()
+            assert optimizer.entered.wait(30)
+            for _ in range(5):  # held in the worker: the running estimator stays
+                state = twin.step()
+                assert event not in state.events and twin.updater.dnn is dnn
+        finally:
+            optimizer.release.set()
+        state = _step_until(twin, event)
+        assert [(e, m) for e, m in optimizer.calls] == [(dnn, dm.model)]
+        assert twin.updater.dnn.name == after and twin.estimator is twin.updater.dnn
+        assert _last(twin, "estimator").payload["k_submitted"] == k_new < state.k
+        metrics = compute_metrics(twin.result())
+    accepted = int(event == "estimator-update")
+    assert metrics["estimator_retrainings"] == {"accepted": accepted, "rejected": 1 - accepted}
+    assert not _opt_threads()

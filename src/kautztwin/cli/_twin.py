@@ -99,9 +99,10 @@ def register(subparsers: argparse._SubParsersAction, common: argparse.ArgumentPa
                    help="pace the run in real time, X plant seconds per wall-clock second "
                    "(default: as fast as possible)")
     r.add_argument("--background", action=argparse.BooleanOptionalAction, default=None,
-                   help="re-identify in a worker thread, off the sampling path (default: on "
-                   "with --speedup, where a synchronous attempt would make samples late; off "
-                   "otherwise, so that a run as fast as possible is reproducible)")
+                   help="re-identify, retune the MPC and retrain the estimator in worker "
+                   "threads, off the sampling path (default: on with --speedup, where "
+                   "synchronous work would make samples late; off otherwise, so that a run as "
+                   "fast as possible is reproducible)")
     r.add_argument("--seed", type=int, default=0,
                    help="seed of the excitation, the dither, the faults and the sensor noise "
                    "(default: %(default)s)")

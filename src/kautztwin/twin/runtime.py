@@ -40,6 +40,8 @@ import math
 import os
 import time
 from collections.abc import Mapping, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import wait as wait_futures
 from dataclasses import asdict, dataclass, field, replace
 from types import MappingProxyType
 from typing import Any, Protocol, runtime_checkable
@@ -763,7 +765,9 @@ class TwinEvent:
     ----------
     kind : str
         ``'phase'``, ``'drift'``, ``'desync'``, ``'resync'``, ``'model-update'``,
-        ``'model-rejected'``, ``'controller'``, ``'controller-rejected'`` or ``'resume'``.
+        ``'model-rejected'``, ``'model-version'``, ``'controller'``,
+        ``'controller-rejected'``, ``'estimator-update'``, ``'estimator-rejected'`` or
+        ``'resume'``.
     k : int
         Sample index.
     t : float
@@ -917,6 +921,38 @@ def _filter_states(
     return x, prev
 
 
+@dataclass(frozen=True, eq=False)
+class _PreparedController:
+    """An MPC problem and its filter states after the first ``n`` samples of the histories."""
+
+    model: KautzModel
+    settings: MPCSettings
+    problem: MPCProblem
+    A: NDArray[np.float64]
+    B: NDArray[np.float64]
+    c: NDArray[np.float64]
+    xv: NDArray[np.float64]
+    xv_prev: NDArray[np.float64]
+    xd: NDArray[np.float64]
+    n: int
+
+
+def _prepare_controller(
+    model: KautzModel, settings: MPCSettings, v_history: ArrayLike, d_history: ArrayLike,
+    input_offset: float,
+) -> _PreparedController:
+    """Build the problem and the filter states (a pure function: it also runs in the worker)."""
+    problem = build_mpc(model, settings)
+    A = np.array(model.basis.A)
+    B = np.array(model.basis.B)
+    c = np.array(model.coefficients)
+    v = np.asarray(v_history, dtype=float) - input_offset
+    d = np.asarray(d_history, dtype=float)
+    xv, xv_prev = _filter_states(A, B, v)
+    xd, _ = _filter_states(A, B, d)
+    return _PreparedController(model, settings, problem, A, B, c, xv, xv_prev, xd, int(v.size))
+
+
 class MPCController:
     r"""The twin's prediction/control module: Laguerre MPC on the current model version.
 
@@ -987,16 +1023,25 @@ class MPCController:
             Commands and dither applied so far (the plant at rest at the
             input offset before them).
         """
-        self.problem = build_mpc(model, settings)
-        self.model = model
-        self.settings = settings
-        self._A = np.array(model.basis.A)
-        self._B = np.array(model.basis.B)
-        self._c = np.array(model.coefficients)
-        v = np.asarray(v_history, dtype=float) - self.input_offset
-        d = np.asarray(d_history, dtype=float)
-        self._xv, self._xv_prev = _filter_states(self._A, self._B, v)
-        self._xd, _ = _filter_states(self._A, self._B, d)
+        self._install(_prepare_controller(model, settings, v_history, d_history,
+                                          self.input_offset))
+
+    def _install(
+        self, prepared: _PreparedController, v_since: ArrayLike = (), d_since: ArrayLike = ()
+    ) -> None:
+        """Run on a prepared controller, advanced over the samples applied since it was prepared.
+
+        The advance repeats the operations of :func:`_filter_states`, so the
+        states equal those of a :meth:`rebuild` on the whole history, bit for bit.
+        """
+        self.problem = prepared.problem
+        self.model = prepared.model
+        self.settings = prepared.settings
+        self._A, self._B, self._c = prepared.A, prepared.B, prepared.c
+        self._xv, self._xv_prev, self._xd = prepared.xv, prepared.xv_prev, prepared.xd
+        for v, d in zip(np.asarray(v_since, dtype=float).tolist(),
+                        np.asarray(d_since, dtype=float).tolist(), strict=True):
+            self.advance(v, d)
         self.n_builds += 1
 
     def solve(self, y: float, reference: float, v_prev: float) -> MPCResult:
@@ -1035,6 +1080,82 @@ class MPCController:
     def __repr__(self) -> str:
         n = None if self.model is None else self.model.n_functions
         return f"MPCController(n_functions={n}, builds={self.n_builds})"
+
+
+# --------------------------------------------------------------------------- background jobs
+_Prepared = tuple[KautzModel, MPCSettings, _PreparedController | DataError]
+
+
+@dataclass(frozen=True, eq=False)
+class _TuningOutcome:
+    """A weight retuning and the controllers built for what the main thread will run."""
+
+    tuning: ControllerTuning
+    prepared: tuple[_Prepared, ...]
+
+
+@dataclass(eq=False)
+class _OptimizationJob:
+    """The optimisation of one model version in the worker: interim controller, tuning, retraining.
+
+    A part is ``None`` before the job is submitted and again once it is
+    applied (or discarded).
+    """
+
+    version: int
+    k: int
+    t: float
+    model: KautzModel
+    initial: bool
+    u_op: float
+    y_op: float
+    tune: bool
+    estimator: Any
+    interim: Future[_PreparedController] | None = None
+    tuning: Future[_TuningOutcome] | None = None
+    retraining: Future[EstimatorRetraining] | None = None
+    submitted: bool = False
+
+
+def _tune_in_worker(
+    optimizer: TwinOptimizer, model: KautzModel, mpc: MPCSettings, step: float, u_op: float,
+    y_op: float, initial: bool, current: MPCSettings,
+    fallback: tuple[KautzModel, MPCSettings] | None, v_history: NDArray, d_history: NDArray,
+    input_offset: float, interim: Future[_PreparedController] | None,
+) -> _TuningOutcome:
+    """Retune the weights, then build the controller the outcome asks for (worker thread).
+
+    Reads its arguments only (immutable models and settings, copied
+    histories): the rules of :meth:`DigitalTwin._apply_tuning` decide which
+    controller runs next - the model with the tuned (or, for the first
+    version, the running) weights, or the last validated controller when
+    the tuning or the build fails - and it is built here, so that the main
+    thread only advances it over the samples since.
+    """
+    tuning = optimizer.tune_controller(model, mpc, step=step, u_op=u_op, y_op=y_op)
+    prepared: list[_Prepared] = []
+
+    def prepare(m: KautzModel, s: MPCSettings) -> bool:
+        try:
+            p: _PreparedController | DataError = _prepare_controller(
+                m, s, v_history, d_history, input_offset)
+        except DataError as exc:
+            p = exc
+        prepared.append((m, s, p))
+        return not isinstance(p, DataError)
+
+    rebuild = tuning.accepted or initial
+    ok = True
+    if rebuild:
+        settings = tuning.settings if tuning.accepted else current
+        # the main thread already runs (model, current): built there (first version) or interim
+        running = initial or (interim is not None and not interim.cancelled()
+                              and interim.exception() is None)
+        if not (running and settings == current):
+            ok = prepare(model, settings)
+    if (not rebuild or not ok) and fallback is not None:
+        prepare(*fallback)
+    return _TuningOutcome(tuning, tuple(prepared))
 
 
 # --------------------------------------------------------------------------- helpers
@@ -1090,14 +1211,16 @@ class DigitalTwin:
         when omitted.
     background : bool or None, default=None
         Run the update module's re-identification in a worker thread, off
-        the sampling path (``Updater(background=True)``).  ``None`` takes
+        the sampling path (``Updater(background=True)``), and the
+        optimization module's work on each new model version (MPC weight
+        retuning, estimator retraining) in a second one (see Notes).  ``None`` takes
         ``config.updater['background']`` when set, else turns it on only
         with a real-time ``clock``: there a synchronous attempt (tens of
         milliseconds to seconds) would make samples late, while a run as fast
         as possible gains nothing and stays reproducible only when
         synchronous (the sample at which a background candidate takes over
         depends on wall-clock time).  The replay of a resumed run is always
-        synchronous.  :meth:`close` stops the worker.
+        synchronous.  :meth:`close` stops the workers.
     estimator : object, optional
         A trained DNN estimator (``kautztwin.nn.CoefficientEstimator`` or
         ``AdaptivePoleEstimator``, or any object with ``predict_models`` and
@@ -1126,7 +1249,8 @@ class DigitalTwin:
     optimizer : TwinOptimizer
         The optimization module.
     background : bool
-        Whether the update module re-identifies in the background (resolved).
+        Whether the update module re-identifies, and the optimization module
+        retunes, in the background (resolved).
     history : HistoryStore
         The store.
     run_id : int or None
@@ -1158,6 +1282,27 @@ class DigitalTwin:
     inputs (a real board just continues), the stored outputs used and
     compared - so the run continues after the last committed sample with
     every component in the state it had, and nothing is stored twice.
+
+    **Optimization in background mode.**  The step that produces a new
+    model version stores it and queues one job for the optimization worker
+    (a thread), then returns.  The worker builds the MPC on the new model
+    with the running weights (the next step switches to it), then retunes
+    the weights (:meth:`~kautztwin.twin.optimize.Optimizer.tune_controller`)
+    and builds the controller the outcome asks for, then retrains the
+    estimator, if any.  Every :meth:`step` applies what has finished with
+    the rules, events and log entries of the synchronous path (a rejected
+    tuning returns to the last validated controller, the one the
+    synchronous path keeps); the tuning records and event payloads add
+    ``k_submitted``, the sample at which the version appeared.  The worker
+    reads immutable models and settings and copies of the command
+    histories only, and never the history store; the controller it builds
+    is advanced over the samples since with the operations of a rebuild, so
+    it equals a rebuild on the whole history bit for bit.  At most one job
+    is in flight: a newer version makes it stale, its unapplied parts are
+    logged as ``'controller-rejected'`` / ``'estimator-rejected'`` ("discarded
+    ...: version N superseded it"), and the newest version's job starts when
+    the worker is free.  The first version's tuning runs there too: the
+    first controller uses the configured weights until it comes in.
 
     Examples
     --------
@@ -1204,6 +1349,11 @@ class DigitalTwin:
         self.run_id: int | None = None
         self.state = TwinState(-1, math.nan, "identification")
         self._started = False
+        self._opt_executor: ThreadPoolExecutor | None = None
+        self._opt_job: _OptimizationJob | None = None
+        self._opt_next: _OptimizationJob | None = None
+        self._opt_waiting: list[Future[Any]] = []
+        self._ctl_validated: tuple[KautzModel, MPCSettings] | None = None
 
     # ------------------------------------------------------------------ properties
     @property
@@ -1220,6 +1370,35 @@ class DigitalTwin:
     def done(self) -> bool:
         """Whether every sample of the run was processed."""
         return self._started and self._k >= self.config.n_samples
+
+    @property
+    def optimizing(self) -> bool:
+        """Whether a background optimization job is in flight or waits for the worker."""
+        return self._opt_job is not None or self._opt_next is not None
+
+    def wait_optimization(self, timeout: float | None = None) -> bool:
+        """Block until the worker has finished the optimization job in flight.
+
+        The next :meth:`step` applies its results (and submits a queued job).
+
+        Parameters
+        ----------
+        timeout : float, optional
+            Most seconds to wait (no limit when omitted).
+
+        Returns
+        -------
+        bool
+            Whether no computation is outstanding any more.
+        """
+        job = self._opt_job
+        futures = [f for f in (job.interim, job.tuning, job.retraining) if f is not None] if (
+            job is not None) else []
+        futures += self._opt_waiting
+        if not futures:
+            return True
+        _, not_done = wait_futures(futures, timeout=timeout)
+        return not not_done
 
     def what_if(self, u_plan: ArrayLike) -> NDArray[np.float64]:
         """Predict the plant's response to a planned input from the twin's current state.
@@ -1450,6 +1629,8 @@ class DigitalTwin:
         a = self._arr
         a["t"][k], a["y"][k], a["flags"][k] = t_k, y_raw, int(s.flags)
         a["y_clean"][k] = y_raw if clean else math.nan
+        if self._opt_job is not None or self._opt_next is not None:
+            self._poll_optimization(k, t_k)  # background: apply what the worker has finished
 
         mpc_ms = math.nan
         v = d = math.nan
@@ -1613,7 +1794,13 @@ class DigitalTwin:
         dm = self.updater.digital_model
         self._version = dm.version
         self._store_version(dm, k, t, self.updater.offset)
-        if cfg.controlled:
+        if cfg.controlled and self._offloaded(k):
+            # the first controller runs on the configured weights until the tuning ends
+            assert cfg.mpc is not None
+            self._rebuild_controller(dm.model, cfg.mpc, k)
+            self._offload(dm, k, t, initial=True)
+            self._event("phase", k, t, "closed loop: MPC tracking with twin updates", {})
+        elif cfg.controlled:
             self._retune_controller(k, t, initial=True)
             self._event("phase", k, t, "closed loop: MPC tracking with twin updates", {})
         else:
@@ -1659,6 +1846,9 @@ class DigitalTwin:
         if dm.version != self._version:
             self._version = dm.version
             self._store_version(dm, k, t, upd.offset)
+            if self._offloaded(k):
+                self._offload(dm, k, t)
+                return
             if cfg.retune and upd.dnn is not None:
                 self._retrain_estimator(dm, k, t)
             if cfg.controlled and cfg.retune:
@@ -1672,12 +1862,26 @@ class DigitalTwin:
         upd = self.updater
         assert upd is not None
         try:
-            rt = self.optimizer.retrain_estimator(upd.dnn, dm.model)
+            rt: EstimatorRetraining | KautzTwinError = self.optimizer.retrain_estimator(
+                upd.dnn, dm.model)
         except KautzTwinError as exc:  # e.g. the estimator has another number of functions
-            self._event("estimator-rejected", k, t, f"estimator not retrained: {exc}", {})
+            rt = exc
+        self._apply_retraining(rt, dm.version, k, t)
+
+    def _apply_retraining(
+        self, rt: EstimatorRetraining | KautzTwinError, version: int, k: int, t: float,
+        extra: Mapping[str, Any] | None = None,
+    ) -> None:
+        """Log a retraining (or why there is none) and run on an accepted candidate."""
+        upd = self.updater
+        assert upd is not None
+        if isinstance(rt, KautzTwinError):
+            self._event("estimator-rejected", k, t, f"estimator not retrained: {rt}",
+                        {**(extra or {})})
             return
         self._event("estimator-update" if rt.accepted else "estimator-rejected", k, t,
-                    f"estimator retraining for version {dm.version}: {rt.reason}", rt.payload())
+                    f"estimator retraining for version {version}: {rt.reason}",
+                    {**rt.payload(), **(extra or {})})
         if rt.accepted:
             upd.dnn = rt.estimator
             self.estimator = rt.estimator
@@ -1691,32 +1895,52 @@ class DigitalTwin:
     def _log_sync(self, ev: SyncEvent, k: int, t: float) -> None:
         self._event(ev.kind, k, t, ev.message, ev.payload())
 
-    def _retune_controller(self, k: int, t: float, *, initial: bool = False) -> None:
-        cfg = self.config
+    def _tuning_point(self, k: int) -> tuple[KautzModel, int, float, float]:
+        """``(model, version, u_op, y_op)``: where the weight retuning of sample ``k`` starts."""
         upd = self.updater
-        assert upd is not None and cfg.mpc is not None
-        model = upd.digital_model.model
+        assert upd is not None
         y_op = float(self._arr["y_clean"][k]) if math.isfinite(self._arr["y_clean"][k]) else (
             float(upd.estimator_.predict()))
-        u_op = self._v_prev
+        return upd.digital_model.model, upd.digital_model.version, self._v_prev, y_op
+
+    def _retune_controller(self, k: int, t: float, *, initial: bool = False) -> None:
+        cfg = self.config
+        assert self.updater is not None and cfg.mpc is not None
+        model, version, u_op, y_op = self._tuning_point(k)
         tuning = self.optimizer.tune_controller(
             model, cfg.mpc, step=cfg.tuning_step(), u_op=u_op, y_op=y_op
         )
-        rec = {"k": int(k), "t": float(t), "version": upd.digital_model.version, **tuning.payload()}
+        self._apply_tuning(tuning, model, version, k, t, initial=initial)
+
+    def _apply_tuning(
+        self, tuning: ControllerTuning, model: KautzModel, version: int, k: int, t: float, *,
+        initial: bool, prepared: Sequence[_Prepared] | None = None,
+        extra: Mapping[str, Any] | None = None,
+    ) -> None:
+        """Rebuild the controller on a validated tuning, or keep the running one.
+
+        ``prepared`` (background mode): the controllers the worker built for
+        the outcome; without it the controller is built here.
+        """
+        cfg = self.config
+        rec = {"k": int(k), "t": float(t), "version": version, **tuning.payload(),
+               **(extra or {})}
         self._tunings.append(rec)
         if tuning.accepted or initial or self.controller.problem is None:
             settings = tuning.settings if tuning.accepted else (self.controller.settings or cfg.mpc)
-            if not self._rebuild_or_keep(model, settings, k, t, rec):
+            if not self._rebuild_or_keep(model, settings, k, t, rec, prepared):
+                self._restore_validated(k, prepared)
                 return
             self._event("controller", k, t,
-                        f"MPC rebuilt on version {upd.digital_model.version}: {tuning.reason}",
-                        rec)
+                        f"MPC rebuilt on version {version}: {tuning.reason}", rec)
         else:
+            self._restore_validated(k, prepared)
             self._event("controller-rejected", k, t,
                         f"kept the controller: {tuning.reason}", rec)
 
     def _rebuild_or_keep(
-        self, model: KautzModel, settings: MPCSettings, k: int, t: float, rec: dict[str, Any]
+        self, model: KautzModel, settings: MPCSettings, k: int, t: float, rec: dict[str, Any],
+        prepared: Sequence[_Prepared] | None = None,
     ) -> bool:
         """Rebuild on a new version; keep the running controller if its QP cannot be set up.
 
@@ -1726,25 +1950,175 @@ class DigitalTwin:
         (no controller yet) raises.
         """
         if self.controller.problem is None:
-            self._rebuild_controller(model, settings, k)
+            self._build(model, settings, k, prepared)
+            self._ctl_validated = (model, settings)
             return True
         try:
-            self._rebuild_controller(model, settings, k)
+            self._build(model, settings, k, prepared)
         except DataError as exc:
             self._event("controller-rejected", k, t,
                         f"kept the controller: the MPC on version {rec.get('version')} cannot "
                         f"be set up ({exc})", rec)
             return False
+        self._ctl_validated = (model, settings)
         return True
+
+    def _build(
+        self, model: KautzModel, settings: MPCSettings, k: int,
+        prepared: Sequence[_Prepared] | None,
+    ) -> None:
+        """Run the controller on ``(model, settings)``: built here, or prepared by the worker."""
+        if prepared is not None:
+            ctl = self.controller
+            if ctl.model is model and ctl.settings == settings:
+                return  # the interim controller of this version already runs it
+            for m, s, p in prepared:
+                if m is model and s == settings:
+                    if isinstance(p, DataError):
+                        raise p
+                    self._install(p, k)
+                    return
+        self._rebuild_controller(model, settings, k)
+
+    def _restore_validated(self, k: int, prepared: Sequence[_Prepared] | None) -> None:
+        """Background mode: back to the last validated controller after the interim one.
+
+        Synchronously the running controller is always the validated one.
+        """
+        if prepared is None or self._ctl_validated is None:
+            return
+        model, settings = self._ctl_validated
+        try:
+            self._build(model, settings, k, prepared)
+        except DataError:  # pragma: no cover - it was built before
+            pass
+
+    def _history_length(self, k: int) -> int:
+        """Samples of the command history that the controller state covers at sample ``k``."""
+        a = self._arr
+        if k >= self._k_cl and a["command"][k] == a["command"][k]:  # this sample's command is in
+            return k + 1
+        return k
 
     def _rebuild_controller(self, model: KautzModel, settings: MPCSettings, k: int) -> None:
         """Build the controller; the histories end with the sample being processed."""
         a = self._arr
-        if k >= self._k_cl and a["command"][k] == a["command"][k]:  # this sample's command is in
-            n = k + 1
-        else:
-            n = k
+        n = self._history_length(k)
         self.controller.rebuild(model, settings, a["command"][:n], a["dither"][:n])
+
+    def _install(self, prepared: _PreparedController, k: int) -> None:
+        """Run on a controller the worker prepared, advanced to sample ``k``."""
+        a = self._arr
+        n = self._history_length(k)
+        self.controller._install(prepared, a["command"][prepared.n:n], a["dither"][prepared.n:n])
+
+    # ------------------------------------------------------------------ optimisation, background
+    def _offloaded(self, k: int) -> bool:
+        """Whether a new version's optimisation runs in the worker (background, not replaying)."""
+        replaying = self._replay_rows is not None and k < self._resume_k
+        return self.background and self.config.retune and not replaying
+
+    def _offload(self, dm: DigitalModel, k: int, t: float, *, initial: bool = False) -> None:
+        """Queue the optimisation of a new version for the worker; it supersedes older ones."""
+        cfg = self.config
+        upd = self.updater
+        assert upd is not None
+        reason = f"version {dm.version} superseded it"
+        if self._opt_job is not None:
+            self._discard(self._opt_job, reason, k, t)
+            self._opt_job = None
+        if self._opt_next is not None:
+            self._discard(self._opt_next, reason, k, t)
+            self._opt_next = None
+        estimator = None if initial else upd.dnn
+        if not cfg.controlled and estimator is None:
+            return
+        model, version, u_op, y_op = self._tuning_point(k)
+        self._opt_next = _OptimizationJob(version, k, t, model, initial, u_op, y_op,
+                                          cfg.controlled, estimator)
+        self._submit_next(k)
+
+    def _discard(self, job: _OptimizationJob, reason: str, k: int, t: float) -> None:
+        """Drop a stale job: log the parts not applied yet, cancel what has not started."""
+        when = (f"submitted at sample {job.k}" if job.submitted
+                else f"queued at sample {job.k}, not started")
+        payload = {"version": job.version, "k_submitted": job.k, "discarded": reason}
+        if job.tune and (job.tuning is not None or not job.submitted):
+            self._event("controller-rejected", k, t,
+                        f"discarded the MPC retuning for version {job.version} ({when}): "
+                        f"{reason}", payload)
+        if job.estimator is not None and (job.retraining is not None or not job.submitted):
+            self._event("estimator-rejected", k, t,
+                        f"discarded the estimator retraining for version {job.version} "
+                        f"({when}): {reason}", payload)
+        for fut in (job.interim, job.tuning, job.retraining):
+            if fut is not None and not fut.cancel() and not fut.done():
+                self._opt_waiting.append(fut)  # running: the next job waits for it
+        job.interim = job.tuning = job.retraining = None
+
+    def _submit_next(self, k: int) -> None:
+        """Submit the queued job once the worker is free (one job in flight at most)."""
+        job = self._opt_next
+        if job is None or self._opt_job is not None:
+            return
+        self._opt_waiting = [f for f in self._opt_waiting if not f.done()]
+        if self._opt_waiting:
+            return
+        self._opt_next = None
+        cfg = self.config
+        a = self._arr
+        n = self._history_length(k)
+        # the worker gets copies and immutable objects only
+        v, d = a["command"][:n].copy(), a["dither"][:n].copy()
+        if self._opt_executor is None:
+            self._opt_executor = ThreadPoolExecutor(
+                max_workers=1, thread_name_prefix="kautztwin-optimize"
+            )
+        ex = self._opt_executor
+        offset = self.controller.input_offset
+        if job.tune:
+            assert cfg.mpc is not None
+            current = self.controller.settings or cfg.mpc
+            if not job.initial:  # the new model with the running weights, until the tuning ends
+                job.interim = ex.submit(_prepare_controller, job.model, current, v, d, offset)
+            job.tuning = ex.submit(
+                _tune_in_worker, self.optimizer, job.model, cfg.mpc, cfg.tuning_step(), job.u_op,
+                job.y_op, job.initial, current, self._ctl_validated, v, d, offset, job.interim,
+            )
+        if job.estimator is not None:
+            job.retraining = ex.submit(self.optimizer.retrain_estimator, job.estimator, job.model)
+        job.submitted = True
+        self._opt_job = job
+
+    def _poll_optimization(self, k: int, t: float) -> None:
+        """Apply what the worker has finished, in the order of the synchronous path."""
+        job = self._opt_job
+        if job is not None and job.version != self._version:  # pragma: no cover - defensive
+            self._discard(job, f"version {self._version} superseded it", k, t)
+            self._opt_job = job = None
+        if job is not None:
+            extra = {"k_submitted": job.k}
+            if job.interim is not None and job.interim.done():
+                fut, job.interim = job.interim, None
+                try:
+                    self._install(fut.result(), k)
+                except DataError:  # keep the running one; the tuning's rebuild reports it
+                    pass
+            if job.interim is None and job.tuning is not None and job.tuning.done():
+                fut_t, job.tuning = job.tuning, None
+                out = fut_t.result()
+                self._apply_tuning(out.tuning, job.model, job.version, k, t,
+                                   initial=job.initial, prepared=out.prepared, extra=extra)
+            if job.tuning is None and job.retraining is not None and job.retraining.done():
+                fut_r, job.retraining = job.retraining, None
+                try:
+                    rt: EstimatorRetraining | KautzTwinError = fut_r.result()
+                except KautzTwinError as exc:
+                    rt = exc
+                self._apply_retraining(rt, job.version, k, t, extra)
+            if job.interim is None and job.tuning is None and job.retraining is None:
+                self._opt_job = None
+        self._submit_next(k)
 
     # ------------------------------------------------------------------ the loop
     def run(
@@ -1858,14 +2232,27 @@ class DigitalTwin:
         )
 
     def close(self) -> None:
-        """Stop the update module's worker, close the plant and the store if the twin opened it.
+        """Stop the workers, close the plant and the store if the twin opened it.
 
         A background re-identification still running is cancelled (its
-        result is dropped); call :meth:`finish` first to commit the run.
+        result is dropped); so is a background optimization job: what has
+        not started is cancelled, a running part (a weight retuning, an
+        estimator retraining) cannot be interrupted and is waited for, and
+        the worker thread is joined.  Call :meth:`finish` first to commit
+        the run.
         """
         for upd in (self.updater, self.static):
             if upd is not None:
                 upd.close()
+        for job in (self._opt_job, self._opt_next):
+            for fut in (job.interim, job.tuning, job.retraining) if job is not None else ():
+                if fut is not None:
+                    fut.cancel()
+        self._opt_job = self._opt_next = None
+        self._opt_waiting = []
+        if self._opt_executor is not None:
+            self._opt_executor.shutdown(wait=True, cancel_futures=True)
+            self._opt_executor = None
         self.plant.close()
         if self._owns_history:
             self.history.close()
