@@ -36,12 +36,14 @@ from ..datasets import ParametricSystem, ResponseDataset, draw_parameters, make_
 from ..exceptions import (
     ConvergenceWarning,
     DataError,
-    DimensionError,
     KautzTwinError,
     NotFittedError,
 )
 from ..metrics import fit_percent
 from .estimator import (
+    _check_fine_tune_data,
+    _check_seed,
+    _checked_records,
     _fine_tune_config,
     _grid_hash,
     _load_verified,
@@ -936,21 +938,10 @@ class AdaptivePoleEstimator(_ParamsMixin):
         fit : Training from scratch.
         kautztwin.twin.Optimizer.retrain_estimator : Fine-tuning for the twin, validated.
         """
-        self._check_is_fitted()
-        if not isinstance(dataset, ResponseDataset):
-            raise DataError(
-                "dataset must be a kautztwin.datasets.ResponseDataset, got "
-                f"{type(dataset).__name__}"
-            )
-        if dataset.kind != self.kind_:
-            raise DataError(
-                f"the data set holds {dataset.kind} responses but the estimator was trained on "
-                f"{self.kind_} responses"
-            )
-        self.check_grid(dataset.t)
-        seed = self.random_state if random_state is None else random_state
-        if not _is_int(seed) or seed < 0:
-            raise DataError(f"random_state must be a non-negative integer, got {seed!r}")
+        _check_fine_tune_data(self, dataset)
+        seed = _check_seed(
+            self.random_state if random_state is None else random_state, "random_state"
+        )
         run_config = _fine_tune_config(self.config_, config)
         new = type(self)(**{**self.get_params(), "random_state": int(seed)})
         module = copy.deepcopy(self.network_)
@@ -1216,38 +1207,7 @@ class AdaptivePoleEstimator(_ParamsMixin):
             )
 
     def _records(self, responses: Any, t: ArrayLike | None) -> tuple[NDArray[np.float64], bool]:
-        self._check_is_fitted()
-        if isinstance(responses, ResponseDataset):
-            if responses.kind != self.kind_:
-                raise DataError(
-                    f"the data set holds {responses.kind} responses but the estimator was "
-                    f"trained on {self.kind_} responses"
-                )
-            t = responses.t if t is None else t
-            responses = responses.responses
-        if t is not None:
-            self.check_grid(t)
-        try:
-            X = np.array(responses, dtype=float)  # a writable copy
-        except (TypeError, ValueError) as exc:
-            raise DataError(f"responses must be an array of numbers: {exc}") from None
-        if X.ndim not in (1, 2):
-            raise DimensionError(
-                "responses must be 1-D (one record) or 2-D (n_records, n_samples), "
-                f"got shape {X.shape}"
-            )
-        single = X.ndim == 1
-        X = np.atleast_2d(X)
-        if X.shape[1] != self.n_samples_:
-            raise DimensionError(
-                f"responses has {X.shape[1]} samples per record but the estimator was trained "
-                f"on {self._grid_text()}; resample the records onto the training grid"
-            )
-        bad = ~np.isfinite(X)
-        if bad.any():
-            i, k = (int(v) for v in np.argwhere(bad)[0])
-            where = f"sample {k}" if single else f"record {i}, sample {k}"
-            raise DataError(f"responses contains a non-finite value ({X[i, k]}) at {where}")
+        X, single = _checked_records(self, responses, t, copy=True)  # a writable copy
         if np.any(np.all(X == 0, axis=1)):
             i = int(np.argmax(np.all(X == 0, axis=1)))
             raise DataError(f"record {i} is all zeros; there are no poles to estimate")

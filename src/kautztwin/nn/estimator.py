@@ -64,6 +64,21 @@ def _check_seed(value: Any, name: str) -> int:
     return int(value)
 
 
+def _check_fine_tune_data(est: Any, dataset: Any) -> None:
+    """Fitted ``est``, and ``dataset`` a data set of its kind on its grid (both estimators)."""
+    est._check_is_fitted()
+    if not isinstance(dataset, ResponseDataset):
+        raise DataError(
+            f"dataset must be a kautztwin.datasets.ResponseDataset, got {type(dataset).__name__}"
+        )
+    if dataset.kind != est.kind_:
+        raise DataError(
+            f"the data set holds {dataset.kind} responses but the estimator was trained on "
+            f"{est.kind_} responses"
+        )
+    est.check_grid(dataset.t)
+
+
 def _child_seed(random_state: int, k: int) -> int:
     return int(np.random.SeedSequence([random_state, k]).generate_state(1)[0])
 
@@ -189,6 +204,49 @@ def _load_verified(
         raise DataError(
             f"model {str(directory)!r} is malformed: {type(exc).__name__}: {msg}"
         ) from None
+
+
+def _checked_records(
+    est: Any, responses: Any, t: ArrayLike | None, *, copy: bool = False
+) -> tuple[NDArray[np.float64], bool]:
+    """Records to estimate, checked against a fitted estimator's grid and kind (both estimators).
+
+    ``responses`` is a :class:`ResponseDataset` or an array of one record (1-D)
+    or many (2-D); returns the 2-D float array (a copy with ``copy=True``) and
+    whether a single record was given.
+    """
+    est._check_is_fitted()
+    if isinstance(responses, ResponseDataset):
+        if responses.kind != est.kind_:
+            raise DataError(
+                f"the data set holds {responses.kind} responses but the estimator was "
+                f"trained on {est.kind_} responses"
+            )
+        t = responses.t if t is None else t
+        responses = responses.responses
+    if t is not None:
+        est.check_grid(t)
+    try:
+        X = np.array(responses, dtype=float) if copy else np.asarray(responses, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise DataError(f"responses must be an array of numbers: {exc}") from None
+    if X.ndim not in (1, 2):
+        raise DimensionError(
+            f"responses must be 1-D (one record) or 2-D (n_records, n_samples), got shape {X.shape}"
+        )
+    single = X.ndim == 1
+    X = np.atleast_2d(X)
+    if X.shape[1] != est.n_samples_:
+        raise DimensionError(
+            f"responses has {X.shape[1]} samples per record but the estimator was trained "
+            f"on {est._grid_text()}; resample the records onto the training grid"
+        )
+    bad = ~np.isfinite(X)
+    if bad.any():
+        i, k = (int(v) for v in np.argwhere(bad)[0])
+        where = f"sample {k}" if single else f"record {i}, sample {k}"
+        raise DataError(f"responses contains a non-finite value ({X[i, k]}) at {where}")
+    return X, single
 
 
 class _ParamsMixin:
@@ -481,18 +539,7 @@ class CoefficientEstimator(_ParamsMixin):
         >>> new is est, new.config_.max_epochs, est.config_.max_epochs
         (False, 2, 3)
         """
-        self._check_is_fitted()
-        if not isinstance(dataset, ResponseDataset):
-            raise DataError(
-                f"dataset must be a kautztwin.datasets.ResponseDataset, got "
-                f"{type(dataset).__name__}"
-            )
-        if dataset.kind != self.kind_:
-            raise DataError(
-                f"the data set holds {dataset.kind} responses but the estimator was trained on "
-                f"{self.kind_} responses"
-            )
-        self.check_grid(dataset.t)
+        _check_fine_tune_data(self, dataset)
         if dataset.n_functions != self.n_functions_:
             raise DataError(
                 f"the data set is labelled with {dataset.n_functions} Kautz coefficients but the "
@@ -658,39 +705,7 @@ class CoefficientEstimator(_ParamsMixin):
             )
 
     def _records(self, responses: Any, t: ArrayLike | None) -> tuple[NDArray[np.float64], bool]:
-        self._check_is_fitted()
-        if isinstance(responses, ResponseDataset):
-            if responses.kind != self.kind_:
-                raise DataError(
-                    f"the data set holds {responses.kind} responses but the estimator was "
-                    f"trained on {self.kind_} responses"
-                )
-            t = responses.t if t is None else t
-            responses = responses.responses
-        if t is not None:
-            self.check_grid(t)
-        try:
-            X = np.asarray(responses, dtype=float)
-        except (TypeError, ValueError) as exc:
-            raise DataError(f"responses must be an array of numbers: {exc}") from None
-        if X.ndim not in (1, 2):
-            raise DimensionError(
-                "responses must be 1-D (one record) or 2-D (n_records, n_samples), "
-                f"got shape {X.shape}"
-            )
-        single = X.ndim == 1
-        X = np.atleast_2d(X)
-        if X.shape[1] != self.n_samples_:
-            raise DimensionError(
-                f"responses has {X.shape[1]} samples per record but the estimator was trained "
-                f"on {self._grid_text()}; resample the records onto the training grid"
-            )
-        bad = ~np.isfinite(X)
-        if bad.any():
-            i, k = (int(v) for v in np.argwhere(bad)[0])
-            where = f"sample {k}" if single else f"record {i}, sample {k}"
-            raise DataError(f"responses contains a non-finite value ({X[i, k]}) at {where}")
-        return X, single
+        return _checked_records(self, responses, t)
 
     # ------------------------------------------------------------------ prediction
     def predict(

@@ -59,8 +59,9 @@ def plot_history(
     epochs = np.arange(1, history.n_epochs + 1)
     ax.plot(epochs, history.train_loss, label=f"{prefix}training")
     if history.val_loss:
-        ax.plot(np.arange(1, len(history.val_loss) + 1), history.val_loss,
-                label=f"{prefix}validation")
+        ax.plot(
+            np.arange(1, len(history.val_loss) + 1), history.val_loss, label=f"{prefix}validation"
+        )
     if history.n_epochs:
         ax.axvline(history.best_epoch + 1, color="0.5", linestyle=":", label=f"{prefix}best epoch")
     if log:

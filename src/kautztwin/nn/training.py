@@ -185,7 +185,11 @@ class TrainingConfig:
             )
         elif name == "default":
             base = cls(
-                learning_rate=1e-3, max_epochs=150, batch_size=128, grad_clip=1.0, patience=20,
+                learning_rate=1e-3,
+                max_epochs=150,
+                batch_size=128,
+                grad_clip=1.0,
+                patience=20,
                 weight_decay=1e-2,
             )
         else:
