@@ -145,3 +145,37 @@ def ise(t: ArrayLike, y: ArrayLike, yhat: ArrayLike, *, rule: str = "simpson") -
         raise DimensionError(f"y has {y.shape[-1]} samples but t has {t.size}")
     out = np.maximum((y - yhat) ** 2 @ quadrature_weights(t, rule), 0.0)
     return float(out) if out.ndim == 0 else out
+
+
+def fit_percent_or_nan(y: ArrayLike, yhat: ArrayLike) -> float:
+    """Fit percent over the samples where both signals are finite; NaN where undefined.
+
+    The tolerant form of :func:`fit_percent` for running monitors, whose windows may hold
+    dropouts: it never raises, and returns NaN for fewer than two usable samples or a
+    constant measured signal.
+
+    Parameters
+    ----------
+    y, yhat : array-like of shape (n_samples,)
+        Measured and model signals; NaN or inf marks a missing sample.
+
+    Returns
+    -------
+    float
+
+    Examples
+    --------
+    >>> from kautztwin.metrics import fit_percent_or_nan
+    >>> fit_percent_or_nan([0.0, 1.0, float("nan"), 3.0], [0.0, 1.0, 5.0, 3.0])
+    100.0
+    """
+    y = np.asarray(y, dtype=float)
+    yhat = np.asarray(yhat, dtype=float)
+    ok = np.isfinite(y) & np.isfinite(yhat)
+    if ok.sum() < 2:
+        return float("nan")
+    yy = y[ok]
+    spread = float(np.linalg.norm(yy - yy.mean()))
+    if spread == 0.0:
+        return float("nan")
+    return 100.0 * (1.0 - float(np.linalg.norm(yy - yhat[ok])) / spread)
