@@ -10,7 +10,7 @@ import pytest
 
 from kautztwin.cli.main import main
 from kautztwin.data import read_columns
-from kautztwin.plants import HydraulicServoDrive
+from kautztwin.simulators import HydraulicServoDrive
 
 
 def run(capsys, *argv):

@@ -1,4 +1,4 @@
-"""Tests of the electro-hydraulic servo drive simulator (kautztwin.plants.hydraulic)."""
+"""Tests of the electro-hydraulic servo drive simulator (kautztwin.simulators.hydraulic)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import scipy.signal
 
 from kautztwin.exceptions import DataError, DimensionError
 from kautztwin.metrics import fit_percent
-from kautztwin.plants import (
+from kautztwin.simulators import (
     HydraulicParameters,
     HydraulicServoDrive,
     simulate_step_tests,

@@ -24,7 +24,7 @@ from kautztwin.ident import (
     simulate_lti,
     step_response,
 )
-from kautztwin.ident.tfest import _pooled_fit
+from kautztwin.ident.tfest.problem import _pooled_fit
 
 TRUE_POLES = np.array([-4.0, -1.5, -0.5])
 TRUE_NUM = [2.0]

@@ -17,7 +17,8 @@ import torch
 import kautztwin as kt
 from kautztwin.datasets import draw_parameters, make_dataset, paper_system
 from kautztwin.exceptions import DataError, DimensionError, NotFittedError
-from kautztwin.nn.adaptive import AdaptivePoleEstimator, AdaptivePoleNetwork, _match_labels
+from kautztwin.nn.adaptive import AdaptivePoleEstimator, AdaptivePoleNetwork
+from kautztwin.nn.adaptive.training import _match_labels
 from kautztwin.nn.oracle import oracle_fit, simulate_parametric
 
 torch.set_num_threads(1)

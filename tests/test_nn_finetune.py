@@ -138,7 +138,7 @@ def test_default_config_derives_from_the_original(monkeypatch, multi_output, new
         seen["config"] = config
         return TrainingHistory((1.0,), (1.0,), 0, 0.0, False)
 
-    monkeypatch.setattr("kautztwin.nn.estimator.fit_network", spy)
+    monkeypatch.setattr("kautztwin.nn.coefficient.training.fit_network", spy)
     new = multi_output.fine_tune(new_data)
     base = multi_output.config_
     assert seen["config"] == new.config_

@@ -11,8 +11,8 @@ import pytest
 import tclab  # noqa: E402,F401 - the [tclab] extra, part of [test]
 
 from kautztwin.exceptions import DataError, DimensionError
-from kautztwin.plants import HydraulicServoDrive
-from kautztwin.twin.plants import (
+from kautztwin.simulators import HydraulicServoDrive
+from kautztwin.twin.physical import (
     Clock,
     HydraulicPlant,
     Plant,

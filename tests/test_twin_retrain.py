@@ -19,7 +19,7 @@ from kautztwin.datasets import draw_parameters, make_dataset, paper_system
 from kautztwin.exceptions import DataError
 from kautztwin.nn import CoefficientEstimator
 from kautztwin.twin import EstimatorRetraining, Optimizer, discretize_model
-from kautztwin.twin.optimize import _continuous_model, _model_system
+from kautztwin.twin.optimization.optimizer import _continuous_model, _model_system
 
 torch.set_num_threads(1)
 

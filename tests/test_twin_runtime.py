@@ -22,7 +22,9 @@ import kautztwin as kt
 from kautztwin.exceptions import DataError
 from kautztwin.twin import Clock, HydraulicPlant, SampleFlag, SQLiteHistory, run_open_loop
 from kautztwin.twin import runtime as runtime_module
-from kautztwin.twin.optimize import ControllerTuning, MPCSettings, Optimizer, build_mpc
+from kautztwin.twin.optimization import ControllerTuning, Optimizer
+from kautztwin.twin.prediction import MPCSettings, build_mpc
+from kautztwin.twin.prediction import controller as controller_module
 from kautztwin.twin.report import compute_metrics, rolling_fit, write_report
 from kautztwin.twin.runtime import (
     DigitalTwin,
@@ -313,7 +315,7 @@ def test_a_controller_that_cannot_be_built_for_a_new_version_is_kept(monkeypatch
         def refuse(model, settings, **kwargs):
             raise DataError("DAQP setup failed (exit flag -1)")
 
-        monkeypatch.setattr(runtime_module, "build_mpc", refuse)
+        monkeypatch.setattr(controller_module, "build_mpc", refuse)
         dm = twin.updater.snapshot("rls-consolidation")  # a new version for the controller
         state = twin.step()
         assert state.version == dm.version and "controller-rejected" in state.events
@@ -522,7 +524,7 @@ def test_background_controller_that_cannot_be_built_is_kept(monkeypatch):
         def refuse(model, settings, **kwargs):
             raise DataError("DAQP setup failed (exit flag -1)")
 
-        monkeypatch.setattr(runtime_module, "build_mpc", refuse)  # in the worker too
+        monkeypatch.setattr(controller_module, "build_mpc", refuse)  # in the worker too
         dm = twin.updater.snapshot("rls-consolidation")
         state = _step_until(twin, "controller-rejected")
         assert state.version == dm.version and twin.controller.problem is running

@@ -13,8 +13,7 @@ import scipy.signal
 import kautztwin as kt
 from kautztwin.exceptions import DataError, DimensionError, NotFittedError
 from kautztwin.twin import DigitalModel, MemoryHistory, SampleFlag
-from kautztwin.twin import update as update_module
-from kautztwin.twin.plants import HydraulicPlant, run_open_loop
+from kautztwin.twin.physical import HydraulicPlant, run_open_loop
 from kautztwin.twin.update import (
     RecursiveKautzEstimator,
     SyncMonitor,
@@ -22,6 +21,7 @@ from kautztwin.twin.update import (
     discretize_model,
     identify_output_error,
 )
+from kautztwin.twin.update import worker as update_module
 
 DT = 0.05
 POLES = np.exp(np.array([-2.0, -5.0]) * DT)  # discrete poles of a 2nd-order cascade

@@ -116,6 +116,8 @@ def check_number(value: Any, name: str) -> float:
 
 def check_positive(value: Any, name: str) -> float:
     """Return ``value`` as a finite float ``> 0``, or raise naming ``name``."""
+    if isinstance(value, bool | np.bool_):
+        raise DataError(f"{name} must be a positive number, got {value!r}")
     try:
         out = float(value)
     except (TypeError, ValueError, OverflowError):
@@ -127,6 +129,8 @@ def check_positive(value: Any, name: str) -> float:
 
 def check_nonnegative(value: Any, name: str) -> float:
     """Return ``value`` as a finite float ``>= 0``, or raise naming ``name``."""
+    if isinstance(value, bool | np.bool_):
+        raise DataError(f"{name} must be a number >= 0, got {value!r}")
     try:
         out = float(value)
     except (TypeError, ValueError, OverflowError):

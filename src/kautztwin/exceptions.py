@@ -15,6 +15,7 @@ __all__ = [
     "NotFittedError",
     "PoleError",
     "StabilityWarning",
+    "TwinError",
     "UnstableModelError",
 ]
 
@@ -41,6 +42,10 @@ class UnstableModelError(PoleError):
 
 class NotFittedError(KautzTwinError, ValueError, AttributeError):
     """An estimator was used before ``fit`` was called."""
+
+
+class TwinError(KautzTwinError, RuntimeError):
+    """The twin runtime cannot go on (identification impossible, store of another run, ...)."""
 
 
 class ConvergenceWarning(UserWarning):

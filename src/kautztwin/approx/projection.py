@@ -13,7 +13,7 @@ import scipy.signal
 from numpy.typing import ArrayLike, NDArray
 
 from .._quadrature import least_squares_weights, quadrature_weights
-from .._validation import check_records, check_time
+from .._validation import check_choice, check_records, check_time
 from ..basis import KautzBasis
 from ..basis._propagate import sample_indices, uniform_step
 from ..exceptions import DataError, DimensionError
@@ -33,11 +33,6 @@ __all__ = [
 
 _KINDS = ("impulse", "step")
 _METHODS = ("quadrature", "lstsq")
-
-
-def _check_choice(value: str, name: str, choices: tuple[str, ...]) -> None:
-    if value not in choices:
-        raise DataError(f"{name} must be one of {', '.join(map(repr, choices))}; got {value!r}")
 
 
 def _design(basis: KautzBasis, t: NDArray, kind: str) -> NDArray[np.float64]:
@@ -118,8 +113,8 @@ def project(
     >>> np.round(c, 6)                      # 1/sqrt(2) on the first function
     array([0.707107, 0.      , 0.      ])
     """
-    _check_choice(kind, "kind", _KINDS)
-    _check_choice(method, "method", _METHODS)
+    check_choice(kind, "kind", _KINDS)
+    check_choice(method, "method", _METHODS)
     t = check_time(t)
     h = check_records(h, t.size)
     if basis.is_discrete:

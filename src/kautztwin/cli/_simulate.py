@@ -90,7 +90,7 @@ def register(subparsers: argparse._SubParsersAction, common: argparse.ArgumentPa
 
 
 def _parse_temperatures(text: str) -> tuple[float, float]:
-    from ..plants.hydraulic import TEMPERATURE_RANGE
+    from ..simulators.hydraulic import TEMPERATURE_RANGE
 
     parts = text.split(":")
     try:
@@ -114,7 +114,7 @@ def _parse_temperatures(text: str) -> tuple[float, float]:
 
 def _check_flags(args: argparse.Namespace) -> tuple[float, float, float]:
     """Reject bad values before anything is computed; return (lo, hi, t_end)."""
-    from ..plants.hydraulic import DEFAULT_T_END
+    from ..simulators.hydraulic import DEFAULT_T_END
 
     if args.records < 1:
         raise CLIError(f"--records must be >= 1, got {args.records}")
@@ -161,7 +161,7 @@ def _fmt_poles(poles: Any) -> str:
 
 def run_hydraulic(args: argparse.Namespace) -> int:
     """Run ``kautztwin simulate hydraulic``; return the exit status."""
-    from ..plants import HydraulicServoDrive, simulate_step_tests
+    from ..simulators import HydraulicServoDrive, simulate_step_tests
 
     lo, hi, t_end = _check_flags(args)
     out = _prepare_dir(args.out)

@@ -159,7 +159,7 @@ def run(args: argparse.Namespace) -> int:
     int
         Exit status (0).
     """
-    from ..twin.plants import Clock
+    from ..twin.physical import Clock
     from ..twin.report import compute_metrics, write_report
     from ..twin.runtime import DigitalTwin, TwinConfig, make_plant
 

@@ -16,7 +16,7 @@ from collections.abc import Sequence
 
 from .. import __version__
 from ..exceptions import KautzTwinError
-from . import _approx, _basis, _identify, _reproduce, _sensitivity, _simulate, _train, _twin
+from . import _approx, _basis, _identify, _plant, _reproduce, _sensitivity, _simulate, _train, _twin
 from ._common import CLIError, join_option_values
 
 __all__ = ["build_parser", "main"]
@@ -93,6 +93,7 @@ def build_parser() -> argparse.ArgumentParser:
     _reproduce.register(sub, common)
     _identify.register(sub, common)
     _twin.register(sub, common)
+    _plant.register(sub, common)
     return parser
 
 

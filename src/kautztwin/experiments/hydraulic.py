@@ -6,11 +6,11 @@ responses (its Figure 9), identifies a third-order transfer function with three
 real poles (97.31 % fit), trains one coefficient network per Kautz function on
 the identified model with uncertainty (Figure 10) and approximates every
 measured record (Figure 11).  The measurements are not public, so the records
-here come from :mod:`kautztwin.plants.hydraulic` (a first-principles model of
+here come from :mod:`kautztwin.simulators.hydraulic` (a first-principles model of
 such a drive, oil warming from 20 to 60 degC over the session, 1 % sensor
 noise), and every step is our own choice where the paper gives none:
 
-1. **Step tests**: :func:`~kautztwin.plants.simulate_step_tests`, divided by
+1. **Step tests**: :func:`~kautztwin.simulators.simulate_step_tests`, divided by
    the step height (unit-step responses); the noise level is estimated from the
    records' second differences, as one would on measured data.
 2. **Identification**: :class:`~kautztwin.ident.TransferFunctionEstimator`
@@ -58,6 +58,9 @@ Methods of step 6:
     Variable projection (:func:`~kautztwin.approx.optimize_poles`) of each step
     record alone, poles free, started at the basis poles: the upper bound of a
     three-function Kautz model.
+
+Size: over 600 lines because it is one study end to end; its stages share the
+study's setup and read top to bottom in the order of the report they write.
 """
 
 from __future__ import annotations
@@ -253,7 +256,7 @@ class _Records:
 
 
 def _step_tests(setup: HydraulicSetup, seed: int) -> _Records:
-    from ..plants import simulate_step_tests
+    from ..simulators import simulate_step_tests
 
     rec = simulate_step_tests(
         setup.n_records, setup.n_samples, setup.temperatures, t_end=setup.t_end,
@@ -459,7 +462,7 @@ def reproduce_hydraulic(
 
     Notes
     -----
-    The records are simulated (:mod:`kautztwin.plants.hydraulic`), not the
+    The records are simulated (:mod:`kautztwin.simulators.hydraulic`), not the
     paper's measurements; ``report.md`` puts the numbers beside the paper's.
     """
     import torch
@@ -635,7 +638,8 @@ def _run(out: Path, setup: HydraulicSetup, quick: bool, random_state: int, progr
         "setup": {**dataclasses.asdict(setup), "temperatures": list(setup.temperatures),
                   "quick": quick, "random_state": random_state,
                   "torch_threads": torch.get_num_threads(),
-                  "data": "simulated (kautztwin.plants.hydraulic), not the paper's measurements"},
+                  "data": ("simulated (kautztwin.simulators.hydraulic), "
+                           "not the paper's measurements")},
         "identification": ident,
         "basis_poles": _cplx(basis.poles),
         "uncertainty": unc_table,
@@ -780,8 +784,10 @@ def _report(m: dict[str, Any]) -> str:
     lines = [
         "# Experimental study (the paper's section 3.2), reproduced on a simulated drive",
         "",
-        "**Our data are simulated, not the paper's measurements.** The paper's 30 step tests of",
-        "its electro-hydraulic stand are not public; ours come from `kautztwin.plants.hydraulic`",
+        "**Our data are simulated, not the paper's measurements.** The paper's 30 step tests "
+        "of",
+        "its electro-hydraulic stand are not public; ours come from "
+        "`kautztwin.simulators.hydraulic`",
         f"(a first-principles throttle-controlled motor): {setup['n_records']} step tests of "
         f"{setup['n_samples']} samples on 0..{setup['t_end']:g} s,",
         f"valve step {setup['amplitude']:g}, oil warming linearly from "

@@ -1,9 +1,11 @@
-"""Identification: transfer-function estimation (tfest), ARX baselines, exact simulation.
+"""Identification: transfer-function estimation (tfest), Kautz output error, ARX, simulation.
 
 * :class:`TransferFunctionEstimator` estimates a continuous-time transfer
   function (chosen or automatic order, optional delay) from one or many step,
   impulse or input/output :class:`Record` objects, by output-error refinement
   of an orthonormal-basis (Kautz) initialisation;
+* :func:`identify_output_error` fits a discrete Kautz model to input/output data
+  by output error (variable projection over the poles): the twin's identification;
 * :class:`ARXEstimator` is the discrete-time least-squares baseline;
 * :func:`simulate_lti`, :func:`step_response` and :func:`impulse_response`
   simulate continuous models exactly for sampled (held or interpolated) inputs.
@@ -12,6 +14,7 @@
 from __future__ import annotations
 
 from .arx import ARXEstimator, ARXModel
+from .kautz_oe import OutputErrorFit, identify_output_error
 from .records import Record, load_records
 from .simulate import impulse_response, simulate_lti, step_response
 from .tfest import TransferFunctionEstimator, TransferFunctionModel
@@ -19,9 +22,11 @@ from .tfest import TransferFunctionEstimator, TransferFunctionModel
 __all__ = [
     "ARXEstimator",
     "ARXModel",
+    "OutputErrorFit",
     "Record",
     "TransferFunctionEstimator",
     "TransferFunctionModel",
+    "identify_output_error",
     "impulse_response",
     "load_records",
     "simulate_lti",

@@ -23,6 +23,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from .._validation import check_finite
 from ..exceptions import DataError, DimensionError, NotFittedError
+from ..metrics import fit_percent
 
 __all__ = ["ARXEstimator", "ARXModel"]
 
@@ -33,13 +34,6 @@ def _signal(x: ArrayLike, name: str) -> NDArray[np.float64]:
         raise DimensionError(f"{name} must be 1-D (SISO), got shape {a.shape}")
     check_finite(a, name)
     return a
-
-
-def _fit_percent(y: NDArray, yhat: NDArray) -> float:
-    spread = float(np.linalg.norm(y - y.mean()))
-    if spread == 0:
-        raise DataError("fit is undefined for a constant measured signal y")
-    return 100.0 * (1.0 - float(np.linalg.norm(y - yhat)) / spread)
 
 
 @dataclass(frozen=True, eq=False)
@@ -385,4 +379,4 @@ class ARXEstimator:
         self._check_fitted()
         y = _signal(y, "y")
         y0 = y[: self.model_.na] if self.model_.na else None
-        return _fit_percent(y, self.model_.simulate(u, y0=y0))
+        return float(fit_percent(y, self.model_.simulate(u, y0=y0)))

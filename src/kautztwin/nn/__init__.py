@@ -1,4 +1,10 @@
-"""Neural estimators on PyTorch: the paper's network, its training loop and the estimator.
+"""Neural estimators on PyTorch: the paper's network, its training loop and the estimators.
+
+Modules: ``networks`` (the paper's network), ``config`` (training options and loss curves),
+``data`` (split and standardisation), ``training`` (the loop ``fit_network``),
+``coefficient`` (:class:`CoefficientEstimator`: training, files, estimator), ``adaptive``
+(:class:`AdaptivePoleEstimator`: network, training, inference, files, estimator), and what
+both estimators share: ``estimator_base`` (parameters, checks) and ``model_files`` (save/load).
 
 Importing this subpackage imports torch (``import kautztwin`` alone does not).
 Install it with ``pip install 'kautztwin[nn]'``.
@@ -14,18 +20,13 @@ except ImportError as _exc:  # pragma: no cover - depends on the environment
     ) from _exc
 
 from .adaptive import DEFAULT_ADAPTIVE_CONFIG, AdaptivePoleEstimator, AdaptivePoleNetwork
-from .estimator import CoefficientEstimator
+from .coefficient import CoefficientEstimator
+from .config import PRESETS, TrainingConfig, TrainingHistory
+from .data import Standardizer, split_indices
 from .networks import PaperNetwork, paper_parameter_count
 from .oracle import OracleFit, oracle_fit, simulate_parametric
 from .plots import plot_history
-from .training import (
-    PRESETS,
-    Standardizer,
-    TrainingConfig,
-    TrainingHistory,
-    fit_network,
-    split_indices,
-)
+from .training import fit_network
 
 __all__ = [
     "DEFAULT_ADAPTIVE_CONFIG",

@@ -2,25 +2,16 @@
 
 from __future__ import annotations
 
-from typing import Any
-
-import numpy as np
 import torch
 from torch import nn
 
-from ..exceptions import DataError
+from .._validation import check_int
 
 __all__ = ["PaperNetwork", "paper_parameter_count"]
 
 #: Widths of the four branches, each layer a ``Linear`` followed by a ``PReLU``.
 BRANCH_WIDTHS: tuple[tuple[int, ...], ...] = ((256, 128, 64, 32), (128, 64, 32), (64, 32), (32,))
 FEATURES = 32  # width of every branch output, of the softmax and of the head input
-
-
-def _check_size(value: Any, name: str) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-        raise DataError(f"{name} must be a positive integer, got {value!r}")
-    return int(value)
 
 
 def paper_parameter_count(n_inputs: int, n_outputs: int = 1) -> int:
@@ -45,8 +36,8 @@ def paper_parameter_count(n_inputs: int, n_outputs: int = 1) -> int:
     >>> paper_parameter_count(900)
     488171
     """
-    n_in = _check_size(n_inputs, "n_inputs")
-    n_out = _check_size(n_outputs, "n_outputs")
+    n_in = check_int(n_inputs, "n_inputs", minimum=1)
+    n_out = check_int(n_outputs, "n_outputs", minimum=1)
     total = 0
     for widths in BRANCH_WIDTHS:
         fan_in = n_in
@@ -132,8 +123,8 @@ class PaperNetwork(nn.Module):
 
     def __init__(self, n_inputs: int, n_outputs: int = 1) -> None:
         super().__init__()
-        self.n_inputs = _check_size(n_inputs, "n_inputs")
-        self.n_outputs = _check_size(n_outputs, "n_outputs")
+        self.n_inputs = check_int(n_inputs, "n_inputs", minimum=1)
+        self.n_outputs = check_int(n_outputs, "n_outputs", minimum=1)
         branches = []
         for widths in BRANCH_WIDTHS:
             layers: list[nn.Module] = []

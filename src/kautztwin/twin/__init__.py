@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from .digital_model import DigitalModel
+from .digital import DigitalModel, discretize_model
 from .history import (
     SCHEMA_VERSION,
     Event,
@@ -16,15 +16,8 @@ from .history import (
     RunInfo,
     SQLiteHistory,
 )
-from .optimize import (
-    ControllerTuning,
-    EstimatorRetraining,
-    MPCSettings,
-    Optimizer,
-    TuningCandidate,
-    build_mpc,
-)
-from .plants import (
+from .optimization import ControllerTuning, EstimatorRetraining, Optimizer, TuningCandidate
+from .physical import (
     Clock,
     HydraulicPlant,
     Plant,
@@ -33,11 +26,15 @@ from .plants import (
     ReplayExhaustedError,
     ReplayInputWarning,
     ReplayPlant,
+    SampleFlag,
+    SampleSanitizer,
+    SanitizedSample,
     TCLabPlant,
     TemperatureSchedule,
     run_open_loop,
     temperature_for_pole_ratio,
 )
+from .prediction import MPCController, MPCSettings, build_mpc
 from .report import (
     compute_metrics,
     plot_outputs,
@@ -50,7 +47,6 @@ from .report import (
 from .runtime import (
     DigitalTwin,
     FaultConfig,
-    MPCController,
     TwinConfig,
     TwinController,
     TwinError,
@@ -63,7 +59,6 @@ from .runtime import (
     make_plant,
     parse_setpoints,
 )
-from .signals import SampleFlag, SampleSanitizer, SanitizedSample
 from .update import (
     FitHistory,
     ModelUpdate,
@@ -73,7 +68,6 @@ from .update import (
     SyncMonitor,
     Updater,
     UpdateResult,
-    discretize_model,
     identify_output_error,
 )
 

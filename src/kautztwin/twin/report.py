@@ -19,6 +19,9 @@ closed-loop samples every ``monitor_stride`` samples (samples flagged by the
 sanitiser left out),
 
 .. math:: \mathrm{fit} = 100\Big(1 - \frac{\|y - \hat y\|}{\|y - \bar y\|}\Big).
+
+Size: over 600 lines because the metrics, the four plots and the Markdown
+report of a run are written together and share their helpers.
 """
 
 from __future__ import annotations
@@ -33,6 +36,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
+from ..metrics import fit_percent_or_nan
 from .runtime import TwinRun
 
 if TYPE_CHECKING:  # pragma: no cover - typing only
@@ -86,13 +90,9 @@ def rolling_fit(
     ends, fits = [], []
     for end in range(start + window, y.size + 1, stride):
         a, b = y[end - window:end], p[end - window:end]
-        ok = np.isfinite(a) & np.isfinite(b)
         fit = math.nan
-        if ok.sum() >= 3:
-            aa = a[ok]
-            spread = float(np.linalg.norm(aa - aa.mean()))
-            if spread > 0:
-                fit = 100.0 * (1.0 - float(np.linalg.norm(aa - b[ok])) / spread)
+        if np.count_nonzero(np.isfinite(a) & np.isfinite(b)) >= 3:
+            fit = fit_percent_or_nan(a, b)
         ends.append(end)
         fits.append(fit)
     return np.asarray(ends, dtype=np.int64), np.asarray(fits, dtype=float)

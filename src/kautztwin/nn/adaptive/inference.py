@@ -1,0 +1,175 @@
+"""Inference of the adaptive-pole estimator: network poles, VarPro refinement, least squares.
+
+Functions of a trained :class:`~kautztwin.nn.AdaptivePoleNetwork` and checked records
+(float64 arrays of shape ``(n_records, n_samples)``), batched by
+:data:`~kautztwin.nn.adaptive.network.RECORD_BATCH` records without gradients.
+"""
+
+from __future__ import annotations
+
+import warnings
+from typing import Any
+
+import numpy as np
+import torch
+from numpy.typing import ArrayLike, NDArray
+
+from ...approx import optimize_poles
+from ...basis._blocks import parse_poles
+from ...exceptions import ConvergenceWarning, DataError, KautzTwinError
+from ..estimator_base import checked_records
+from ..kautz_torch import block_poles, lstsq_coefficients, response_weights
+from .network import RECORD_BATCH, AdaptivePoleNetwork
+
+__all__ = [
+    "check_records",
+    "least_squares_fit",
+    "predict_params",
+    "refine_params",
+    "weights_tensor",
+]
+
+
+def check_records(
+    est: Any, responses: Any, t: ArrayLike | None
+) -> tuple[NDArray[np.float64], bool]:
+    """Records checked against a fitted estimator (a writable copy), none all zeros.
+
+    Parameters
+    ----------
+    est : AdaptivePoleEstimator
+        A fitted estimator.
+    responses : array-like or ResponseDataset
+        One record (1-D), many (2-D), or a data set.
+    t : array-like or None
+        Sample times of the records, checked against the estimator's grid.
+
+    Returns
+    -------
+    X : ndarray of shape (n_records, n_samples)
+    single : bool
+        Whether one 1-D record was given.
+
+    Raises
+    ------
+    DataError
+        As :func:`~kautztwin.nn.estimator_base.checked_records`, or on an all-zero record.
+    """
+    X, single = checked_records(est, responses, t, copy=True)  # a writable copy
+    if np.any(np.all(X == 0, axis=1)):
+        i = int(np.argmax(np.all(X == 0, axis=1)))
+        raise DataError(f"record {i} is all zeros; there are no poles to estimate")
+    return X, single
+
+
+def predict_params(module: AdaptivePoleNetwork, X: NDArray) -> NDArray[np.float64]:
+    """Block parameters the network predicts for every record (float64).
+
+    Parameters
+    ----------
+    module : AdaptivePoleNetwork
+    X : ndarray of shape (n_records, n_samples)
+
+    Returns
+    -------
+    ndarray of shape (n_records, n_params)
+    """
+    out = np.empty((X.shape[0], module.n_functions))
+    dtype = module.projector.dtype
+    with torch.no_grad():
+        for s in range(0, X.shape[0], RECORD_BATCH):
+            xb = torch.as_tensor(X[s : s + RECORD_BATCH], dtype=dtype)
+            out[s : s + xb.shape[0]] = module(xb).double().numpy()
+    return out
+
+
+def refine_params(
+    t: NDArray,
+    kinds: tuple[str, ...],
+    kind: str,
+    X: NDArray,
+    params: NDArray,
+    max_iter: int,
+) -> NDArray[np.float64]:
+    """Variable-projection refinement of every record's block parameters.
+
+    :func:`kautztwin.optimize_poles` started from ``params``; a record whose refinement
+    fails or changes the block structure keeps its start.
+
+    Parameters
+    ----------
+    t : ndarray of shape (n_samples,)
+    kinds : tuple of str
+        Block structure.
+    kind : {'impulse', 'step'}
+        What the records are.
+    X : ndarray of shape (n_records, n_samples)
+    params : ndarray of shape (n_records, n_params)
+        Start values.
+    max_iter : int
+        ``max_iter`` of the refinement.
+
+    Returns
+    -------
+    ndarray of shape (n_records, n_params)
+    """
+    out = params.copy()
+    for i in range(X.shape[0]):
+        start = block_poles(kinds, torch.from_numpy(params[i])).numpy()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", ConvergenceWarning)
+            try:
+                res = optimize_poles(t, X[i], start, kind=kind, max_iter=int(max_iter))
+            except (KautzTwinError, np.linalg.LinAlgError):
+                continue
+        got_kinds, p = parse_poles(res.basis.poles, 0.0)
+        if got_kinds == kinds and np.all(np.isfinite(p)):
+            out[i] = p
+    return out
+
+
+def weights_tensor(t: NDArray, rule: str, dtype: torch.dtype) -> torch.Tensor | None:
+    """Least-squares weights of the ``weights`` option; ``None`` for ordinary least squares."""
+    if rule == "uniform":
+        return None  # ordinary least squares: skip the multiplication
+    return response_weights(t, rule, dtype=dtype)
+
+
+def least_squares_fit(
+    module: AdaptivePoleNetwork,
+    X: NDArray,
+    params: NDArray,
+    w: torch.Tensor | None,
+    dtype: torch.dtype,
+    *,
+    responses: bool = False,
+) -> NDArray[np.float64]:
+    """Least-squares fit of every record on the basis of its block parameters.
+
+    Parameters
+    ----------
+    module : AdaptivePoleNetwork
+        Supplies the basis signals (:meth:`~AdaptivePoleNetwork.design`).
+    X : ndarray of shape (n_records, n_samples)
+    params : ndarray of shape (n_records, n_params)
+    w : torch.Tensor or None
+        Least-squares weights (:func:`weights_tensor`).
+    dtype : torch.dtype
+        Dtype of the basis and the least squares.
+    responses : bool, default=False
+        Return the fitted responses instead of the coefficients.
+
+    Returns
+    -------
+    ndarray of shape (n_records, n_functions), or (n_records, n_samples) with ``responses``
+    """
+    out = np.empty_like(X if responses else params)
+    with torch.no_grad():
+        for s in range(0, X.shape[0], RECORD_BATCH):
+            P = torch.as_tensor(params[s : s + RECORD_BATCH], dtype=dtype)
+            h = torch.as_tensor(X[s : s + RECORD_BATCH], dtype=dtype)
+            K = module.design(P)
+            c = lstsq_coefficients(K, h, w)
+            fit = (c[:, None, :] @ K)[:, 0] if responses else c
+            out[s : s + P.shape[0]] = fit.double().numpy()
+    return out

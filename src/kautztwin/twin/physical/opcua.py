@@ -1,0 +1,901 @@
+"""The twin's OPC UA link: a :class:`Plant` that is an OPC UA client.
+
+:class:`OPCUAPlant` reads the plant output through a data-change subscription
+and writes the input node; node ids and scaling come from a configuration
+mapping whose defaults are the address space of
+:class:`kautztwin.service.PlantServer` (a real PLC maps its own node ids).
+The client runs in a background thread with its own asyncio loop, so the
+synchronous twin loop calls :meth:`OPCUAPlant.step` as it calls any plant.
+
+What real links do, and what the link does about it:
+
+* the server goes away: :meth:`~OPCUAPlant.step` never raises; it returns a
+  NaN reading with ``meta['link'] == 'down'`` once per sample period, records
+  the outage in :attr:`~OPCUAPlant.outages`, and reconnects in the background
+  with exponential backoff (the subscription is created again);
+* stale data (no new sample within ``stale_periods`` sample periods, e.g. a
+  frozen server): a NaN reading flagged ``stale`` and ``dropout`` per period
+  instead of blocking, recorded as an outage of kind ``'stale'``;
+* late and out-of-order samples: samples are returned in source-timestamp
+  order; one older than a sample already returned is dropped and counted;
+* a write the server rejects: reported in ``meta['write']``, the plant holds
+  its previous input.
+
+Inputs outside :attr:`~OPCUAPlant.input_limits` are refused with a
+:class:`~kautztwin.exceptions.DataError` before they go out.
+
+Size: over 600 lines (the class over 400) because the session (connect, subscribe,
+reconnect with backoff), the sample queue ordered by source timestamp and the synchronous
+Plant interface share one state guarded by one lock; about half of the lines are documentation.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import heapq
+import itertools
+import logging
+import math
+import threading
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+from urllib.parse import urlsplit
+
+from ...exceptions import DataError, KautzTwinError
+from .base import Reading
+
+__all__ = ["NAMESPACE_URI", "LinkError", "OPCUAPlant", "Outage", "parse_endpoint"]
+
+_logger = logging.getLogger(__name__)
+
+#: namespace URI of the plant objects of :class:`kautztwin.service.PlantServer`
+NAMESPACE_URI = "urn:kautztwin:plant"
+
+
+def parse_endpoint(url: str) -> tuple[str, int]:
+    """Check an ``opc.tcp://HOST:PORT`` endpoint and split it.
+
+    Parameters
+    ----------
+    url : str
+        Endpoint URL; the port defaults to 4840, port 0 picks a free one
+        when the server starts.
+
+    Returns
+    -------
+    tuple
+        ``(host, port)``.
+
+    Raises
+    ------
+    DataError
+        If the scheme is not ``opc.tcp``, the host is missing or the port is invalid.
+
+    Examples
+    --------
+    >>> from kautztwin.twin.physical import parse_endpoint
+    >>> parse_endpoint("opc.tcp://127.0.0.1:4841")
+    ('127.0.0.1', 4841)
+    """
+    text = str(url).strip()
+    parts = urlsplit(text)
+    if parts.scheme != "opc.tcp":
+        raise DataError(f"endpoint must look like opc.tcp://HOST:PORT, got {text!r}")
+    try:
+        port = parts.port
+    except ValueError:
+        raise DataError(f"endpoint {text!r} has an invalid port (0..65535)") from None
+    host = parts.hostname
+    if not host:
+        raise DataError(f"endpoint {text!r} has no host")
+    if parts.path not in ("", "/") or parts.query or parts.fragment:
+        raise DataError(f"endpoint {text!r} must be opc.tcp://HOST:PORT without a path")
+    return host, 4840 if port is None else int(port)
+
+
+_NODE_KEYS = ("u", "y", "dt", "speed", "status")
+_OPTIONAL_NODES = ("dt", "speed", "status")
+_IDENTITY_ERRORS = ("BadUserAccessDenied", "BadIdentityTokenRejected", "BadIdentityTokenInvalid",
+                    "BadSecurityPolicyRejected", "BadCertificateUntrusted")
+_VARIANTS_INT = ("SByte", "Byte", "Int16", "UInt16", "Int32", "UInt32", "Int64", "UInt64")
+
+
+class LinkError(KautzTwinError, ConnectionError):
+    """The OPC UA server could not be reached (or refused the session) in time."""
+
+
+@dataclass
+class Outage:
+    """One interruption of the plant data.
+
+    Parameters
+    ----------
+    kind : {'link', 'stale'}
+        ``'link'``: the connection was lost; ``'stale'``: connected, but no new
+        sample arrived for ``stale_periods`` sample periods.
+    start : float
+        Wall-clock time the outage was detected (POSIX seconds).
+    end : float or None
+        Wall-clock time data flowed again; ``None`` while it lasts.
+    reason : str
+        What was seen (one line).
+    t : float
+        Plant time of the last reading before the outage, s.
+    """
+
+    kind: str
+    start: float
+    end: float | None
+    reason: str
+    t: float = math.nan
+
+    @property
+    def duration(self) -> float:
+        """Seconds from start to end (NaN while the outage lasts)."""
+        return math.nan if self.end is None else self.end - self.start
+
+
+@dataclass(frozen=True, order=True)
+class _Sample:
+    ts: float  # source timestamp, POSIX s
+    seq: int
+    value: float  # engineering units (NaN when unusable)
+    status: str
+    good: bool
+    arrival: float  # time.monotonic()
+    latency: float  # arrival wall time - source timestamp, s
+
+
+def _scale_pair(spec: Any, key: str) -> tuple[float, float]:
+    if isinstance(spec, Mapping):
+        unknown = set(spec) - {"scale", "offset"}
+        if unknown:
+            raise DataError(f"scaling.{key}: unknown key {sorted(unknown)[0]!r}; use scale, offset")
+        scale, offset = spec.get("scale", 1.0), spec.get("offset", 0.0)
+    elif isinstance(spec, tuple | list) and len(spec) == 2:
+        scale, offset = spec
+    else:
+        raise DataError(
+            f"scaling.{key} must be {{'scale': a, 'offset': b}} or (a, b), got {spec!r}"
+        )
+    try:
+        scale, offset = float(scale), float(offset)
+    except (TypeError, ValueError):
+        raise DataError(f"scaling.{key}: scale and offset must be numbers") from None
+    if not (math.isfinite(scale) and scale != 0 and math.isfinite(offset)):
+        raise DataError(f"scaling.{key}: scale must be finite and non-zero, offset finite")
+    return scale, offset
+
+
+def _positive(value: Any, name: str) -> float:
+    try:
+        out = float(value)
+    except (TypeError, ValueError):
+        raise DataError(f"{name} must be a positive number, got {value!r}") from None
+    if not (math.isfinite(out) and out > 0):
+        raise DataError(f"{name} must be a positive number, got {out}")
+    return out
+
+
+class OPCUAPlant:
+    """A plant behind an OPC UA server (a PLC, or :class:`kautztwin.service.PlantServer`).
+
+    Parameters
+    ----------
+    endpoint : str
+        Server URL, ``opc.tcp://HOST:PORT``.
+    plant : str, default='hydraulic'
+        Object name of the default node ids ``<plant>.u``, ``<plant>.y``...
+    nodes : mapping, optional
+        Node ids by role: ``'u'`` (input, written), ``'y'`` (output,
+        subscribed), and the optional ``'dt'``, ``'speed'`` and ``'status'``.
+        A value is a full OPC UA node id (``'ns=3;s=Line1.Speed'``,
+        ``'nsu=urn:plc;i=1002'``) or a bare string id looked up in
+        ``namespace``.  Roles left out take the defaults ``<plant>.<role>``.
+    namespace : str, default=NAMESPACE_URI
+        Namespace URI of bare string ids.
+    scaling : mapping, optional
+        ``{'u': {'scale': a, 'offset': b}, 'y': (a, b)}``: engineering value =
+        ``raw * scale + offset`` (identity when omitted).
+    dt : float, optional
+        Sampling period, plant seconds; read from the ``dt`` node when omitted.
+    input_limits : tuple of float, optional
+        ``(low, high)`` in engineering units; from the input node's ``EURange``
+        property when omitted.
+    speed : float, optional
+        Plant seconds per wall-clock second of the server's timestamps; read
+        from the ``speed`` node when omitted (1.0 when the server has none: a
+        real plant).
+    stale_periods : float, default=3
+        A sample period without a new sample this many times over makes the
+        data stale (a flagged NaN reading instead of a wait).
+    publishing_interval : float, optional
+        Subscription publishing interval, s; ``min(period / 2, 0.05)`` (at
+        least 2 ms) when omitted, ``period = dt / speed``.
+    connect_timeout : float, default=10.0
+        Seconds the first connection may take before :class:`LinkError`.
+    request_timeout : float, default=2.0
+        Seconds one OPC UA request (a write) may take.
+    reconnect_delay, reconnect_max_delay : float, default=0.1, 1.0
+        First and longest wait between reconnection attempts, s (doubling).
+    username, password : str, optional
+        User identity for the session (anonymous when omitted).
+    security : str, optional
+        asyncua security string ``'Policy,Mode,client_cert.pem,client_key.pem[,server_cert]'``
+        (e.g. ``'Basic256Sha256,SignAndEncrypt,cert.pem,key.pem'``) when the
+        server offers that policy.
+    name : str, optional
+        Plant name for logs (``plant`` when omitted).
+
+    Raises
+    ------
+    DataError
+        On an unknown node role, a malformed node id, invalid scaling or
+        timing values.
+
+    Attributes
+    ----------
+    outages : list of Outage
+        Link and stale-data outages, oldest first.
+    counters : dict of str to int
+        ``samples`` (real readings returned), ``dropouts`` (NaN readings of
+        any cause), ``stale``, ``link_down`` (readings while disconnected),
+        ``late``, ``out_of_order`` (samples dropped: older than one returned),
+        ``duplicates``, ``rejected_writes``, ``failed_writes``, ``reconnects``.
+
+    See Also
+    --------
+    kautztwin.service.PlantServer : The simulated plant server with the default address space.
+
+    Notes
+    -----
+    ``meta`` of each reading: ``k`` (reading index since :meth:`reset`),
+    ``u`` (input in effect over the period: the last accepted write),
+    ``u_requested``, ``write`` (``'ok'``, ``'rejected: <status>'``,
+    ``'failed: <error>'``, ``'not sent: link down'``), ``link``
+    (``'up'``/``'down'``), ``dropout``, ``stale``, ``late`` (the sample was
+    taken before this step's input was written: it does not reflect it),
+    ``out_of_order`` (samples dropped since the previous reading), ``status``
+    (the sample's OPC UA status name), ``source_time`` (POSIX s),
+    ``latency`` (arrival minus source time, s: clocks must agree) and
+    ``queued`` (newer samples waiting: the caller is behind).
+
+    The reading time is ``(source_time - source_time_at_reset) * speed``,
+    snapped to the ``dt`` grid when within 10 % of it.  :meth:`reset` does not
+    reset the remote plant: it starts the reading clock at the current sample.
+
+    Examples
+    --------
+    >>> from kautztwin.twin.physical import OPCUAPlant
+    >>> plant = OPCUAPlant("opc.tcp://127.0.0.1:4840", plant="hydraulic")  # doctest: +SKIP
+    >>> r0 = plant.reset(); r1 = plant.step(0.55)  # doctest: +SKIP
+    """
+
+    def __init__(
+        self,
+        endpoint: str,
+        *,
+        plant: str = "hydraulic",
+        nodes: Mapping[str, str] | None = None,
+        namespace: str = NAMESPACE_URI,
+        scaling: Mapping[str, Any] | None = None,
+        dt: float | None = None,
+        input_limits: tuple[float, float] | None = None,
+        speed: float | None = None,
+        stale_periods: float = 3.0,
+        publishing_interval: float | None = None,
+        connect_timeout: float = 10.0,
+        request_timeout: float = 2.0,
+        reconnect_delay: float = 0.1,
+        reconnect_max_delay: float = 1.0,
+        username: str | None = None,
+        password: str | None = None,
+        security: str | None = None,
+        name: str | None = None,
+    ) -> None:
+
+        self.endpoint = str(endpoint).strip()
+        parse_endpoint(self.endpoint)
+        self.object_name = str(plant)
+        self.name = str(name if name is not None else plant)
+        self.namespace = str(namespace)
+        spec = {k: f"{self.object_name}.{k}" for k in _NODE_KEYS}
+        self._explicit: set[str] = set()
+        for key, value in dict(nodes or {}).items():
+            if key not in _NODE_KEYS:
+                raise DataError(f"nodes: unknown role {key!r}; use one of {', '.join(_NODE_KEYS)}")
+            if not isinstance(value, str) or not value.strip():
+                raise DataError(f"nodes.{key} must be a node id string, got {value!r}")
+            spec[key] = value.strip()
+            self._explicit.add(key)
+        self.nodes = spec
+        self._parsed = {k: self._parse_node_id(k, v) for k, v in spec.items()}
+        scaling = dict(scaling or {})
+        for key in scaling:
+            if key not in ("u", "y"):
+                raise DataError(f"scaling: unknown variable {key!r}; use u or y")
+        self._scale = {k: _scale_pair(scaling.get(k, (1.0, 0.0)), k) for k in ("u", "y")}
+        self._dt = None if dt is None else _positive(dt, "dt")
+        self._speed = None if speed is None else _positive(speed, "speed")
+        self._limits: tuple[float, float] | None = None
+        if input_limits is not None:
+            try:
+                lo, hi = (float(v) for v in input_limits)
+            except (TypeError, ValueError):
+                raise DataError(f"input_limits must be (low, high), got {input_limits!r}") from None
+            if not lo < hi:
+                raise DataError(f"input_limits must have low < high, got ({lo}, {hi})")
+            self._limits = (lo, hi)
+        self.stale_periods = _positive(stale_periods, "stale_periods")
+        self._pub = None if publishing_interval is None else _positive(
+            publishing_interval, "publishing_interval")
+        self.connect_timeout = _positive(connect_timeout, "connect_timeout")
+        self.request_timeout = _positive(request_timeout, "request_timeout")
+        self.reconnect_delay = _positive(reconnect_delay, "reconnect_delay")
+        self.reconnect_max_delay = max(self.reconnect_delay,
+                                       _positive(reconnect_max_delay, "reconnect_max_delay"))
+        self.username, self.password, self.security = username, password, security
+        self.outages: list[Outage] = []
+        self.counters = dict.fromkeys(
+            ("samples", "dropouts", "stale", "link_down", "late", "out_of_order", "duplicates",
+             "rejected_writes", "failed_writes", "reconnects"), 0)
+        self._cond = threading.Condition()
+        self._heap: list[_Sample] = []
+        self._seq = itertools.count()
+        self._thread: threading.Thread | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._closing: asyncio.Event | None = None
+        self._ready = threading.Event()
+        self._fatal: BaseException | None = None
+        self._last_error = ""
+        self._client: Any = None
+        self._u_node: Any = None
+        self._u_variant: Any = None
+        self._link_up = False
+        self._connections = 0
+        self._newest_ts = -math.inf
+        self._last_fresh = time.monotonic()
+        self._origin_ts: float | None = None
+        self._last_ts = -math.inf
+        self._last_t = 0.0
+        self._degraded_at: float | None = None  # monotonic time of the last NaN reading
+        self._stale_outage: Outage | None = None
+        self._link_outage: Outage | None = None
+        self._k = 0
+        self._u = math.nan
+
+    # ------------------------------------------------------------------ configuration
+    def _parse_node_id(self, key: str, text: str) -> Any:
+        from asyncua import ua
+
+        if "=" not in text:
+            return ("bare", text)
+        try:
+            nid = ua.NodeId.from_string(text)
+        except Exception as exc:
+            raise DataError(
+                f"nodes.{key}: {text!r} is not an OPC UA node id "
+                f"(write e.g. 'ns=2;s=plant.y', 'nsu=URI;i=1001' or a bare string id): "
+                f"{' '.join(str(exc).split())}"
+            ) from None
+        return ("id", nid)
+
+    @property
+    def dt(self) -> float:
+        """Sampling period, plant seconds (read from the server on first use when not given)."""
+        if self._dt is None:
+            self.connect()
+        assert self._dt is not None
+        return self._dt
+
+    @property
+    def speed(self) -> float:
+        """Plant seconds per wall-clock second of the server's timestamps."""
+        if self._speed is None:
+            self.connect()
+        return 1.0 if self._speed is None else self._speed
+
+    @property
+    def input_limits(self) -> tuple[float, float]:
+        """``(low, high)`` input bounds in engineering units; writes outside are refused."""
+        if self._limits is None:
+            self.connect()
+        assert self._limits is not None
+        return self._limits
+
+    @property
+    def link_up(self) -> bool:
+        """Whether the session and its subscription are up now."""
+        return self._link_up
+
+    # ------------------------------------------------------------------ connection
+    def connect(self) -> OPCUAPlant:
+        """Start the background link and wait for the first connection.
+
+        Returns
+        -------
+        OPCUAPlant
+            ``self``.
+
+        Raises
+        ------
+        LinkError
+            If the server cannot be reached within ``connect_timeout``.
+        DataError
+            If a node id does not exist on the server, or ``dt`` or the input
+            limits are neither configured nor readable.
+        """
+        if self._thread is not None and self._thread.is_alive():
+            if self._ready.is_set() and self._fatal is None:
+                return self
+        else:
+            self._ready.clear()
+            self._fatal = None
+            self._thread = threading.Thread(target=self._thread_main, daemon=True,
+                                            name=f"kautztwin-opcua-{self.name}")
+            self._thread.start()
+        if not self._ready.wait(self.connect_timeout):
+            self.close()
+            detail = f": {self._last_error}" if self._last_error else ""
+            raise LinkError(
+                f"cannot connect to {self.endpoint} within {self.connect_timeout:g} s{detail}"
+            )
+        if self._fatal is not None:
+            fatal = self._fatal
+            self.close()
+            raise fatal
+        return self
+
+    def _thread_main(self) -> None:
+        try:
+            asyncio.run(self._supervise())
+        except BaseException as exc:  # pragma: no cover - a crash of the link thread
+            _logger.exception("OPC UA link thread crashed")
+            self._fatal = self._fatal or exc
+            self._ready.set()
+        finally:
+            self._link_up = False
+            self._loop = None
+
+    def _make_client(self) -> Any:
+        from asyncua import Client
+
+        client = Client(self.endpoint, timeout=self.request_timeout, watchdog_intervall=0.5)
+        if self.username is not None:
+            client.set_user(self.username)
+        if self.password is not None:
+            client.set_password(self.password)
+        return client
+
+    async def _supervise(self) -> None:
+        self._loop = asyncio.get_running_loop()
+        self._closing = asyncio.Event()
+        delay = self.reconnect_delay
+        while not self._closing.is_set():
+            client = None
+            up = False
+            reason = "connection lost"
+            try:
+                client = self._make_client()
+                if self.security:
+                    await client.set_security_string(self.security)
+                budget = max(self.connect_timeout, 2 * self.request_timeout)
+                await asyncio.wait_for(client.connect(), budget)
+                await self._setup(client)
+                lost = asyncio.Event()
+
+                async def on_lost(exc: Exception, lost: asyncio.Event = lost) -> None:
+                    lost.set()
+
+                client.connection_lost_callback = on_lost
+                self._on_up(client)
+                up = True
+                delay = self.reconnect_delay
+                while not (lost.is_set() or self._closing.is_set()):
+                    with contextlib.suppress(TimeoutError):
+                        await asyncio.wait_for(lost.wait(), 0.2)
+                    if client.uaclient.state.name not in ("CONNECTED",):
+                        reason = f"connection lost ({client.uaclient.state.value})"
+                        break
+            except DataError as exc:  # a configuration error: no retry before the first link
+                if self._connections == 0:
+                    self._fatal = exc
+                    self._ready.set()
+                    return
+                self._last_error = str(exc)
+                reason = f"connection lost: {exc}"
+            except Exception as exc:
+                self._last_error = " ".join(str(exc).split()) or type(exc).__name__
+                reason = f"connection lost: {self._last_error}"
+                if self._connections == 0 and type(exc).__name__ in _IDENTITY_ERRORS:
+                    self._fatal = LinkError(
+                        f"{self.endpoint} refused the session: {self._last_error}")
+                    self._ready.set()
+                    return
+            finally:
+                if up:
+                    self._on_down(None if self._closing.is_set() else reason)
+                if client is not None:
+                    client.connection_lost_callback = None
+                    with contextlib.suppress(Exception):
+                        await asyncio.wait_for(client.disconnect(), 1.0)
+            if self._closing.is_set():
+                break
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._closing.wait(), delay)
+            delay = min(2 * delay, self.reconnect_max_delay)
+
+    async def _node(self, client: Any, key: str) -> Any:
+        from asyncua import ua
+
+        kind, value = self._parsed[key]
+        if kind == "bare":
+            try:
+                idx = await client.get_namespace_index(self.namespace)
+            except Exception:
+                raise DataError(
+                    f"nodes.{key}: namespace {self.namespace!r} is not on {self.endpoint}"
+                ) from None
+            nid = ua.NodeId(value, idx)
+        elif isinstance(value, ua.ExpandedNodeId) and value.NamespaceUri:
+            try:
+                idx = await client.get_namespace_index(value.NamespaceUri)
+            except Exception:
+                raise DataError(
+                    f"nodes.{key}: namespace {value.NamespaceUri!r} is not on {self.endpoint}"
+                ) from None
+            nid = ua.NodeId(value.Identifier, idx, value.NodeIdType)
+        else:
+            nid = value
+        return client.get_node(nid)
+
+    async def _exists(self, node: Any) -> bool:
+        from asyncua import ua
+
+        try:
+            await node.read_attribute(ua.AttributeIds.NodeClass)
+        except ua.uaerrors.BadNodeIdUnknown:
+            return False
+        return True
+
+    async def _setup(self, client: Any) -> None:
+        """Resolve the nodes, read the metadata (first time) and subscribe to the output."""
+        from asyncua import ua
+
+        nodes = {}
+        for key in _NODE_KEYS:
+            node = await self._node(client, key)
+            if not await self._exists(node):
+                if key in _OPTIONAL_NODES and key not in self._explicit:
+                    continue
+                raise DataError(
+                    f"OPC UA node {self.nodes[key]!r} ({key}) does not exist on {self.endpoint}"
+                )
+            nodes[key] = node
+        u_node, y_node = nodes["u"], nodes["y"]
+        self._u_variant = await u_node.read_data_type_as_variant_type()
+        if self._dt is None:
+            if "dt" not in nodes:
+                raise DataError(
+                    f"{self.name}: give dt (the server has no {self.nodes['dt']!r} node)"
+                )
+            self._dt = _positive(await nodes["dt"].read_value(), "dt read from the server")
+        if self._speed is None:
+            self._speed = 1.0
+            if "speed" in nodes:
+                self._speed = _positive(await nodes["speed"].read_value(),
+                                        "speed read from the server")
+        if self._limits is None:
+            rng = None
+            for prop in await u_node.get_properties():
+                if (await prop.read_browse_name()).Name == "EURange":
+                    rng = await prop.read_value()
+            if rng is None:
+                raise DataError(
+                    f"{self.name}: give input_limits (the input node {self.nodes['u']!r} has no "
+                    "EURange property)"
+                )
+            a, b = (self._eng("u", float(rng.Low)), self._eng("u", float(rng.High)))
+            self._limits = (min(a, b), max(a, b))
+        period = self._dt / self._speed
+        pub = self._pub if self._pub is not None else max(0.002, min(period / 2, 0.05))
+        sub = await client.create_subscription(pub * 1000.0, self)
+        rv = ua.ReadValueId(NodeId=y_node.nodeid, AttributeId=ua.AttributeIds.Value)
+        params = ua.MonitoringParameters(
+            ClientHandle=1, SamplingInterval=0.0, QueueSize=1000, DiscardOldest=True,
+            Filter=ua.DataChangeFilter(Trigger=ua.DataChangeTrigger.StatusValueTimestamp),
+        )
+        mir = ua.MonitoredItemCreateRequest(
+            ItemToMonitor=rv, MonitoringMode=ua.MonitoringMode.Reporting,
+            RequestedParameters=params,
+        )
+        result = (await sub.create_monitored_items([mir]))[0]
+        if isinstance(result, ua.StatusCode):
+            raise DataError(f"cannot subscribe to {self.nodes['y']!r}: {result}")
+        self._u_node = u_node
+
+    def _eng(self, key: str, raw: float) -> float:
+        scale, offset = self._scale[key]
+        return raw * scale + offset
+
+    def _on_up(self, client: Any) -> None:
+        now = time.time()
+        with self._cond:
+            self._client = client
+            self._link_up = True
+            self._connections += 1
+            if self._connections > 1:
+                self.counters["reconnects"] += 1
+            if self._link_outage is not None:
+                self._link_outage.end = now
+                self._link_outage = None
+            self._last_fresh = time.monotonic()
+            self._cond.notify_all()
+        self._ready.set()
+        _logger.info("%s: connected to %s", self.name, self.endpoint)
+
+    def _on_down(self, reason: str | None) -> None:
+        with self._cond:
+            self._link_up = False
+            self._client = None
+            self._u_node = None
+            self._cond.notify_all()
+            if reason is None:  # closed on purpose
+                return
+            outage = Outage("link", time.time(), None, reason, self._last_t)
+            self._link_outage = outage
+            self.outages.append(outage)
+            self._cond.notify_all()
+        _logger.warning("%s: link to %s down: %s", self.name, self.endpoint, reason)
+
+    # ------------------------------------------------------------------ subscription handler
+    def datachange_notification(self, node: Any, val: Any, data: Any) -> None:
+        """asyncua callback: queue one output sample (runs in the link thread).
+
+        Parameters
+        ----------
+        node : asyncua.Node
+            The output node.
+        val : object
+            The value.
+        data : asyncua.common.subscription.DataChangeNotif
+            The notification, with the full ``DataValue``.
+        """
+        from asyncua.ua import status_codes
+
+        dv = data.monitored_item.Value
+        now_wall, now = time.time(), time.monotonic()
+        stamp = dv.SourceTimestamp or dv.ServerTimestamp
+        ts = now_wall if stamp is None else stamp.timestamp()
+        code = dv.StatusCode
+        good = code is None or code.is_good()
+        status = "Good" if code is None else status_codes.get_name_and_doc(code.value)[0]
+        try:
+            value = self._eng("y", float(dv.Value.Value))
+        except (AttributeError, TypeError, ValueError):
+            value = math.nan
+        if not good:
+            value = math.nan
+        sample = _Sample(ts, next(self._seq), value, status, good, now, now_wall - ts)
+        with self._cond:
+            if ts > self._newest_ts:
+                self._newest_ts = ts
+                self._last_fresh = now
+            heapq.heappush(self._heap, sample)
+            self._cond.notify_all()
+
+    def status_change_notification(self, status: Any) -> None:
+        """asyncua callback: a subscription status change (logged; the supervisor reconnects).
+
+        Parameters
+        ----------
+        status : asyncua.ua.StatusChangeNotification
+        """
+        _logger.info("%s: subscription status %s", self.name, status)
+
+    # ------------------------------------------------------------------ readings
+    def _plant_time(self, ts: float) -> float:
+        assert self._origin_ts is not None
+        t = (ts - self._origin_ts) * self.speed
+        dt = self.dt
+        k = round(t / dt)
+        return k * dt if abs(t - k * dt) <= 0.1 * dt else t
+
+    def _pop(self) -> tuple[_Sample | None, int]:
+        """Next sample newer than the last one returned (call with the lock held)."""
+        dropped = 0
+        while self._heap:
+            s = heapq.heappop(self._heap)
+            if s.ts > self._last_ts:
+                return s, dropped
+            if s.ts < self._last_ts:
+                dropped += 1
+                self.counters["out_of_order"] += 1
+            else:
+                self.counters["duplicates"] += 1
+        return None, dropped
+
+    def reset(self) -> Reading:
+        """Connect (if needed) and return the current sample as the reading at ``t = 0``.
+
+        The remote plant is not reset: the reading clock starts at its current sample.
+
+        Returns
+        -------
+        Reading
+
+        Raises
+        ------
+        LinkError
+            If the server cannot be reached within ``connect_timeout``.
+        DataError
+            On bad node ids or missing metadata (see :meth:`connect`).
+        """
+        self.connect()
+        deadline = time.monotonic() + self.connect_timeout
+        with self._cond:
+            while not self._heap:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise LinkError(f"no sample of {self.nodes['y']!r} from {self.endpoint} "
+                                    f"within {self.connect_timeout:g} s")
+                self._cond.wait(left)
+            newest = max(self._heap)
+            self._heap.clear()
+            self._origin_ts = newest.ts
+            self._last_ts = newest.ts
+            self._last_t = 0.0
+            self._k = 0
+            self._u = math.nan
+            self._degraded_at = None
+            return self._real_reading(newest, 0, math.nan, "", written_at=None)
+
+    def _real_reading(self, s: _Sample, dropped: int, u_req: float, write: str,
+                      written_at: float | None) -> Reading:
+        t = self._plant_time(s.ts)
+        late = written_at is not None and s.arrival < written_at
+        dropout = not math.isfinite(s.value)
+        self._last_ts = s.ts
+        self._last_t = t
+        self._degraded_at = None
+        if self._stale_outage is not None:
+            self._stale_outage.end = time.time()
+            self._stale_outage = None
+        if dropout:
+            self.counters["dropouts"] += 1
+        else:
+            self.counters["samples"] += 1
+        if late:
+            self.counters["late"] += 1
+        meta = dict(k=self._k, u=self._u, u_requested=u_req, write=write, link="up"
+                    if self._link_up else "down", dropout=dropout, stale=False, late=late,
+                    out_of_order=dropped, status=s.status, source_time=s.ts, latency=s.latency,
+                    queued=len(self._heap))
+        return Reading(t, s.value if not dropout else math.nan, meta)
+
+    def _write(self, raw: float) -> str:
+        loop, node = self._loop, self._u_node
+        if loop is None or node is None or not self._link_up:
+            return "not sent: link down"
+        future = asyncio.run_coroutine_threadsafe(self._write_async(node, raw), loop)
+        try:
+            return future.result(self.request_timeout + 0.5)
+        except Exception as exc:  # timeout or a closed loop
+            future.cancel()
+            return f"failed: {' '.join(str(exc).split()) or type(exc).__name__}"
+
+    async def _write_async(self, node: Any, raw: float) -> str:
+        from asyncua import ua
+        from asyncua.ua import status_codes
+
+        vtype = self._u_variant or ua.VariantType.Double
+        value: Any = int(round(raw)) if vtype.name in _VARIANTS_INT else raw
+        try:
+            await node.write_attribute(ua.AttributeIds.Value,
+                                       ua.DataValue(ua.Variant(value, vtype)))
+        except ua.UaStatusCodeError as exc:
+            return f"rejected: {status_codes.get_name_and_doc(exc.code)[0]}"
+        except Exception as exc:
+            return f"failed: {' '.join(str(exc).split()) or type(exc).__name__}"
+        return "ok"
+
+    def step(self, u: float | None) -> Reading:
+        """Write ``u``, wait for the next output sample and return it.
+
+        Never raises on link faults: while the server is unreachable, or no
+        new sample arrives within ``stale_periods`` periods, it returns a NaN
+        reading flagged in ``meta`` (one per sample period).
+
+        Parameters
+        ----------
+        u : float
+            Input in engineering units, inside :attr:`input_limits`.
+
+        Returns
+        -------
+        Reading
+
+        Raises
+        ------
+        DataError
+            If ``u`` is not a finite number inside :attr:`input_limits` (nothing is written).
+        """
+        try:
+            value = float(u)  # type: ignore[arg-type]
+        except (TypeError, ValueError):
+            raise DataError(f"{self.name}: u must be a number, got {u!r}") from None
+        lo, hi = self.input_limits
+        if not (math.isfinite(value) and lo <= value <= hi):
+            raise DataError(
+                f"{self.name}: input {value:g} is outside the input limits [{lo:g}, {hi:g}]; "
+                "refused before it was written"
+            )
+        if self._origin_ts is None:
+            raise DataError(f"{self.name}: call reset() before step()")
+        scale, offset = self._scale["u"]
+        written_at = time.monotonic()
+        write = self._write((value - offset) / scale)
+        if write == "ok":
+            self._u = value
+        elif write.startswith("rejected"):
+            self.counters["rejected_writes"] += 1
+        elif write.startswith("failed"):
+            self.counters["failed_writes"] += 1
+        self._k += 1
+        period = self.dt / self.speed
+        with self._cond:
+            while True:
+                sample, dropped = self._pop()
+                if sample is not None:
+                    return self._real_reading(sample, dropped, value, write, written_at)
+                now = time.monotonic()
+                if self._degraded_at is not None:
+                    deadline = self._degraded_at + period
+                else:
+                    deadline = self._last_fresh + self.stale_periods * period
+                if now >= deadline:
+                    at = deadline if now - deadline < period else now  # no backlog of NaNs
+                    return self._missing_reading(value, write, dropped, at)
+                self._cond.wait(deadline - now)
+
+    def _missing_reading(self, u_req: float, write: str, dropped: int, at: float) -> Reading:
+        """A NaN reading: no sample in time (call with the lock held)."""
+        link = "up" if self._link_up else "down"
+        stale = link == "up"
+        self._degraded_at = at
+        self._last_t += self.dt
+        self.counters["dropouts"] += 1
+        self.counters["stale" if stale else "link_down"] += 1
+        if stale and self._stale_outage is None:
+            self._stale_outage = Outage(
+                "stale", time.time(), None,
+                f"no new sample for {self.stale_periods:g} sample periods", self._last_t - self.dt)
+            self.outages.append(self._stale_outage)
+        meta = dict(k=self._k, u=self._u, u_requested=u_req, write=write, link=link,
+                    dropout=True, stale=stale, late=False, out_of_order=dropped, status="",
+                    source_time=math.nan, latency=math.nan, queued=0)
+        return Reading(self._last_t, math.nan, meta)
+
+    def close(self) -> None:
+        """Disconnect and stop the background link (idempotent)."""
+        loop, closing, thread = self._loop, self._closing, self._thread
+        if loop is not None and closing is not None:
+            with contextlib.suppress(RuntimeError):
+                loop.call_soon_threadsafe(closing.set)
+        if thread is not None:
+            thread.join(5.0)
+        self._thread = None
+        self._link_up = False
+
+    def __enter__(self) -> OPCUAPlant:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        state = "up" if self._link_up else "down"
+        return f"OPCUAPlant({self.endpoint!r}, plant={self.object_name!r}, link {state})"

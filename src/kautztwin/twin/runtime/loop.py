@@ -1,0 +1,653 @@
+r"""The twin's sample loop: :class:`DigitalTwin` wires plant, update, control, optimization, store.
+
+:class:`DigitalTwin` composes the five modules of the twin through the
+small :class:`typing.Protocol` interfaces of :mod:`.protocols`:
+
+1. the **physical system** (:class:`~kautztwin.twin.Plant`: the hydraulic drive,
+   the TCLab emulator or board, or a replayed record);
+2. the **digital model** (:class:`~kautztwin.twin.DigitalModel`: the current
+   Kautz model, versioned, with its provenance);
+3. the **update module** (:class:`~kautztwin.twin.runtime.TwinUpdater`, by default
+   :class:`~kautztwin.twin.Updater`: recursive least squares on Kautz filters,
+   synchronisation monitor, re-identification);
+4. the **prediction module** (:class:`~kautztwin.twin.runtime.TwinController` /
+   :class:`~kautztwin.twin.runtime.TwinPredictor`:
+   :class:`~kautztwin.twin.prediction.MPCController`, a constrained Laguerre MPC
+   built once per model version and re-solved every sample, and the twin's
+   what-if prediction);
+5. the **optimization module** (:class:`~kautztwin.twin.runtime.TwinOptimizer`, by
+   default :class:`~kautztwin.twin.optimization.Optimizer`: pole re-optimisation,
+   model consolidation and MPC weight retuning, each validated before it
+   replaces the running version);
+
+and the **history store** (:class:`~kautztwin.twin.HistoryStore`, SQLite by
+default) in which every sample is committed.
+
+A run is a deterministic function of its :class:`~kautztwin.twin.runtime.TwinConfig`
+and the plant: an open-loop identification phase (binary excitation around
+the operating point, then :func:`~kautztwin.twin.identify_output_error`), then
+closed-loop MPC tracking of the set-point schedule while the twin updates
+itself.  Each :meth:`DigitalTwin.step` returns a new immutable
+:class:`~kautztwin.twin.runtime.TwinState`.  A run that is killed resumes from
+its store (:mod:`.record`).  The loop delegates: the run's bookkeeping and
+resume to :mod:`.record`, the excitation and the faults to :mod:`.excitation`,
+the initial identification and the static twin to :mod:`.twins`, what
+follows each update (resync, new model versions and their optimisation) to
+:mod:`.versions`, the controller's life cycle to :mod:`.control`, and
+background optimisation to :mod:`kautztwin.twin.optimization.background`.
+
+**One sample** ``k`` (closed loop): read ``y(k)`` (with injected faults);
+sanitise it (a dropout, outlier or late sample is flagged, the controller
+then uses the twin's prediction instead); solve the MPC on the current
+model version for the command ``v(k)`` and apply ``u(k) = v(k) + d(k)``
+(a late sample holds the last input); update the twin and the static
+twin with ``(u(k), y(k))``; act on the update module's events (a
+``'resync'`` asks the optimizer to re-optimise the poles or consolidate
+the fast path; a new model version is retuned and validated before the
+controller is rebuilt on it); step the plant; commit the sample (every
+``commit_every`` samples in one transaction).
+
+**Resume.**  :meth:`DigitalTwin.start` with ``resume=True`` looks for an unfinished
+run with the same configuration in the store.  Its committed samples are
+replayed through the same code - the plant re-simulated with the stored
+inputs (a real board just continues), the stored outputs used and
+compared - so the run continues after the last committed sample with
+every component in the state it had, and nothing is stored twice.
+
+**Optimization in background mode.**  A new model version's weight
+retuning and estimator retraining run in a worker thread
+(:class:`~kautztwin.twin.optimization.background.OptimizationWorker`,
+whose module notes give the rules); every :meth:`DigitalTwin.step` applies what has
+finished with the rules, events and log entries of the synchronous path.
+
+Size: the module is :class:`DigitalTwin` alone, over 400 lines because about
+200 of them are the numpydoc docstrings of its public API; its code (the
+sample loop and its phases) is some 350 lines, every other job delegated.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from ...exceptions import DataError
+from ..digital import DigitalModel
+from ..history import HistoryStore
+from ..optimization import Optimizer
+from ..physical import Clock, Plant, Reading, ReplayPlant, SampleFlag
+from ..prediction import MPCController
+from ..update import Updater
+from .config import TwinConfig
+from .excitation import FaultPlan, excitation
+from .protocols import TwinError, TwinOptimizer
+from .record import Replay, RunRecord, open_history
+from .results import TwinRun, TwinState
+from .twins import catch_up, identification_info, identify_initial, make_sanitizer, make_twins
+from .versions import ModelVersions
+
+__all__ = ["DigitalTwin"]
+
+
+class DigitalTwin:
+    r"""The digital twin runtime: identify, then control, update, optimise and record.
+
+    Parameters
+    ----------
+    plant : Plant
+        The physical system.
+    config : TwinConfig, optional
+        The run; :meth:`TwinConfig.for_plant` of the plant when omitted.
+    history : HistoryStore, str, os.PathLike or None, default=None
+        The history store: a store, the path of a SQLite file (durable; a
+        killed run resumes from it), or ``None`` for an in-memory SQLite database.
+    clock : Clock, optional
+        Pacing of the loop; as fast as possible when omitted.  A real-time
+        clock waits for each sample's time (``speedup`` plant seconds per
+        wall-clock second) and counts late ticks (its ``tolerance``).
+    optimizer : TwinOptimizer, optional
+        The optimization module; :class:`~kautztwin.twin.optimization.Optimizer`
+        when omitted.
+    background : bool or None, default=None
+        Run the update module's re-identification in a worker thread, off
+        the sampling path (``Updater(background=True)``), and the
+        optimization module's work on each new model version (MPC weight
+        retuning, estimator retraining) in a second one (see the module notes).  ``None`` takes
+        ``config.updater['background']`` when set, else turns it on only
+        with a real-time ``clock``: there a synchronous attempt (tens of
+        milliseconds to seconds) would make samples late, while a run as fast
+        as possible gains nothing and stays reproducible only when
+        synchronous (the sample at which a background candidate takes over
+        depends on wall-clock time).  The replay of a resumed run is always
+        synchronous.  :meth:`close` stops the workers.
+    estimator : object, optional
+        A trained DNN estimator (``kautztwin.nn.CoefficientEstimator`` or
+        ``AdaptivePoleEstimator``, or any object with ``predict_models`` and
+        ``fine_tune``) for the update module's step-test fast path
+        (:meth:`Updater.update_from_step_test`).  With ``config.retune``, each
+        new model version asks the optimizer to fine-tune it around the new
+        operating point (:meth:`Optimizer.retrain_estimator`); a validated
+        candidate replaces it (events ``'estimator-update'`` /
+        ``'estimator-rejected'``).  It must have as many basis functions as the
+        twin's models.
+
+    Raises
+    ------
+    DataError
+        If the configuration does not fit the plant (another ``dt``), or
+        ``background`` is not a bool or ``None``.
+
+    Attributes
+    ----------
+    updater : Updater or None
+        The update module (after the identification phase).
+    static : Updater or None
+        The static twin (updates disabled), when ``config.static_twin``.
+    controller : MPCController
+        The prediction/control module.
+    optimizer : TwinOptimizer
+        The optimization module.
+    background : bool
+        Whether the update module re-identifies, and the optimization module
+        retunes, in the background (resolved).
+    history : HistoryStore
+        The store.
+    run_id : int or None
+        The run in the store (after :meth:`start`).
+    state : TwinState
+        The latest state.
+
+    See Also
+    --------
+    TwinConfig.for_plant : Tuned profiles of the shipped plants.
+    kautztwin.twin.report.write_report : ``metrics.json``, ``report.md`` and plots.
+
+    Examples
+    --------
+    >>> from kautztwin.twin import HydraulicPlant
+    >>> from kautztwin.twin.runtime import DigitalTwin, TwinConfig
+    >>> plant = HydraulicPlant(dt=0.02, temperature=20.0, noise=0.01, random_state=1)
+    >>> cfg = TwinConfig.for_plant(plant, duration=12.0, quick=True, static_twin=False)
+    >>> run = DigitalTwin(plant, cfg).run(progress=False)
+    >>> run.n_done, run.status, int(run.arrays["version"][-1]) >= 1
+    (600, 'finished', True)
+    """
+
+    def __init__(
+        self,
+        plant: Plant,
+        config: TwinConfig | None = None,
+        *,
+        history: HistoryStore | str | os.PathLike[str] | None = None,
+        clock: Clock | None = None,
+        optimizer: TwinOptimizer | None = None,
+        background: bool | None = None,
+        estimator: Any = None,
+    ) -> None:
+        self.plant = plant
+        self.estimator = estimator
+        self.config = config if config is not None else TwinConfig.for_plant(plant)
+        if abs(self.config.dt - float(plant.dt)) > 1e-9 * plant.dt:
+            raise DataError(
+                f"the configuration has dt = {self.config.dt:g} s but the plant samples at "
+                f"{plant.dt:g} s"
+            )
+        self.history, self.store, self._owns_history = open_history(history)
+        self.clock = clock if clock is not None else Clock()
+        if background is None:
+            background = self.config.updater.get("background", self.clock.realtime)
+        if not isinstance(background, bool | np.bool_):
+            raise DataError(f"background must be True, False or None, got {background!r}")
+        self.background = bool(background)
+        self.optimizer: TwinOptimizer = optimizer if optimizer is not None else Optimizer()
+        self.controller = MPCController(input_offset=self.config.operating_input)
+        self.updater: Updater | None = None
+        self.static: Updater | None = None
+        self.run_id: int | None = None
+        self.state = TwinState(-1, math.nan, "identification")
+        self._started = False
+        self._versions: ModelVersions | None = None
+
+    # ------------------------------------------------------------------ properties
+    @property
+    def digital_model(self) -> DigitalModel | None:
+        """The current model version (``None`` before identification)."""
+        return None if self.updater is None else self.updater.digital_model
+
+    @property
+    def k(self) -> int:
+        """Index of the next sample."""
+        return self._k if self._started else 0
+
+    @property
+    def done(self) -> bool:
+        """Whether every sample of the run was processed."""
+        return self._started and self._k >= self.config.n_samples
+
+    @property
+    def optimizing(self) -> bool:
+        """Whether a background optimization job is in flight or waits for the worker."""
+        return self._versions is not None and self._versions.worker.busy
+
+    def wait_optimization(self, timeout: float | None = None) -> bool:
+        """Block until the worker has finished the optimization job in flight.
+
+        The next :meth:`step` applies its results (and submits a queued job).
+
+        Parameters
+        ----------
+        timeout : float, optional
+            Most seconds to wait (no limit when omitted).
+
+        Returns
+        -------
+        bool
+            Whether no computation is outstanding any more.
+        """
+        return True if self._versions is None else self._versions.worker.wait(timeout)
+
+    def what_if(self, u_plan: ArrayLike) -> NDArray[np.float64]:
+        """Predict the plant's response to a planned input from the twin's current state.
+
+        Parameters
+        ----------
+        u_plan : array-like of shape (n_steps,)
+            Inputs of the next samples.
+
+        Returns
+        -------
+        ndarray of shape (n_steps,)
+            Predicted outputs of the same samples (the live model of the update module).
+
+        Raises
+        ------
+        TwinError
+            Before the identification phase has ended.
+        """
+        if self.updater is None:
+            raise TwinError("the twin has no model yet (identification phase)")
+        return self.updater.predict(np.asarray(u_plan, dtype=float))
+
+    # ------------------------------------------------------------------ setup
+    def start(self, *, resume: bool = True) -> TwinState:
+        """Open the run: a new one, or resume an unfinished one with the same configuration.
+
+        Parameters
+        ----------
+        resume : bool, default=True
+            Look for an unfinished run with this configuration in the store
+            and continue it after its last committed sample.
+
+        Returns
+        -------
+        TwinState
+            The state before the next sample (after the replay when resumed).
+
+        Raises
+        ------
+        TwinError
+            If the store's committed samples are not a contiguous prefix.
+        """
+        if self._started:
+            raise TwinError("the run has already been started")
+        cfg = self.config
+        self._wall0 = time.perf_counter()
+        self._record = rec = RunRecord(self.history, self.store, cfg.n_samples)
+        self._u_ident, self._d = excitation(cfg)
+        self._faults = FaultPlan.for_config(cfg)
+        self._sanitizer = make_sanitizer(cfg)
+        self._k = 0
+        self._k_cl = cfg.n_ident
+        self._v_prev = cfg.operating_input
+        self._d_prev = 0.0
+        self._u_prev = cfg.operating_input
+        self._ref = math.nan
+        self._late_ticks = 0
+        self._mpc_failures = 0
+        self._drift_logged: set[float] = set()
+        self._versions = ModelVersions(cfg, self.optimizer, rec, self.controller,
+                                       on_estimator=self._set_estimator)
+        self._replay: Replay = rec.open({"twin": cfg.to_dict(), "plant": self.plant.name}, resume)
+        self.run_id = rec.run_id
+        self._reading = self.plant.reset()
+        self._t_offset = 0.0
+        self._replayable = not getattr(self.plant, "connected", False)
+        self._started = True
+        self.clock.start()
+        self._clock_t0 = 0.0
+        if self._replay.rows is not None:
+            self._replay.resume_k = rec.committed
+            while self._k < self._replay.resume_k:
+                self.step()
+            if not self._replayable and self._k < cfg.n_samples:
+                # a real plant cannot be rewound: it continues from where it is now
+                self._reading = self.plant.reset()
+                self._t_offset = self._k * cfg.dt
+            self._replay.rows = None
+            if self.updater is not None:  # the replay ran synchronously
+                self.updater.background = self.background
+            self.clock.start()
+            self._clock_t0 = self._k * cfg.dt
+        return self.state
+
+    # ------------------------------------------------------------------ one sample
+    def step(self) -> TwinState:
+        """Process the next sample and return the new state.
+
+        Returns
+        -------
+        TwinState
+
+        Raises
+        ------
+        TwinError
+            If the run was not started or is complete.
+        """
+        if not self._started:
+            raise TwinError("call start() (or run()) first")
+        cfg = self.config
+        k = self._k
+        if k >= cfg.n_samples:
+            raise TwinError(f"the run is complete ({cfg.n_samples} samples)")
+        replay = self._replay.active(k)
+        a = self._record.arrays
+        n_ev = len(self._record.events)
+        t_k, y_raw, flags = self._measure(k, replay)
+        clean = not (flags & (SampleFlag.HELD | SampleFlag.OUTLIER))
+        late = bool(flags & SampleFlag.LATE and flags & SampleFlag.HELD)
+        versions = self._versions
+        assert versions is not None
+        if versions.worker.busy:
+            versions.worker.poll(versions.version, k, t_k)  # apply what it has finished
+        phase, u, v, d, mpc_ms = self._input(k, t_k, y_raw, clean, late)
+        if replay:
+            u = self._replay.input(k, u)
+        a["u"][k], a["command"][k], a["dither"][k], a["mpc_ms"][k] = u, v, d, mpc_ms
+        self._v_prev, self._d_prev, self._u_prev = v, d, u
+        upd_ms, fit, fit_s = self._update(k, t_k, u, y_raw)
+        self._advance(k, u, replay)
+        if not replay:
+            self._record.commit((k, t_k, u, y_raw, int(flags)), every=cfg.commit_every,
+                                last=k + 1 == cfg.n_samples)
+        self._k = k + 1
+        events = [e.kind for e in self._record.events[n_ev:]]
+        self.state = TwinState(
+            k, t_k, phase, y_raw, u, v if cfg.controlled else math.nan,
+            a["setpoint"][k], a["reference"][k], a["y_pred"][k], a["y_pred_static"][k],
+            int(flags), versions.version, fit, fit_s, mpc_ms, upd_ms, tuple(events),
+            self._record.committed, replay,
+        )
+        return self.state
+
+    def _measure(self, k: int, replay: bool) -> tuple[float, float, SampleFlag]:
+        """Read sample ``k`` (faults injected, or as stored when replayed), log drift, sanitise."""
+        t_k, y_raw = self._faults.apply(k, self._reading.t + self._t_offset,
+                                        float(self._reading.y))
+        if replay:
+            t_k, y_raw = self._replay.reading(k, t_k, y_raw)
+        for e in getattr(self.plant, "drift_events", ()):
+            if t_k >= e and e not in self._drift_logged:
+                self._drift_logged.add(e)
+                self._record.event("drift", k, t_k, f"plant drift event at {e:g} s",
+                                   {"t_event": e})
+        s = self._sanitizer.process(y_raw, t_k)
+        clean = not (s.flags & (SampleFlag.HELD | SampleFlag.OUTLIER))
+        a = self._record.arrays
+        a["t"][k], a["y"][k], a["flags"][k] = t_k, y_raw, int(s.flags)
+        a["y_clean"][k] = y_raw if clean else math.nan
+        return t_k, y_raw, s.flags
+
+    def _input(
+        self, k: int, t_k: float, y_raw: float, clean: bool, late: bool
+    ) -> tuple[str, float, float, float, float]:
+        """``(phase, u, v, d, mpc_ms)``: the input of sample ``k`` (identification, control)."""
+        cfg = self.config
+        mpc_ms = math.nan
+        if k < self._k_cl:
+            phase = "identification"
+            u = self._recorded_input(k) if not cfg.controlled else float(self._u_ident[k])
+            v, d = u, 0.0
+        elif not cfg.controlled:
+            phase = "monitoring"
+            u = self._recorded_input(k)
+            v, d = u, 0.0
+        else:
+            phase = "closed-loop"
+            if k == self._k_cl:
+                self._begin_twin(k, t_k)
+            u, v, d, mpc_ms = self._track(k, t_k, y_raw, clean, late)
+        if k == self._k_cl and not cfg.controlled:
+            self._begin_twin(k, t_k)
+        return phase, u, v, d, mpc_ms
+
+    def _track(
+        self, k: int, t_k: float, y_raw: float, clean: bool, late: bool
+    ) -> tuple[float, float, float, float]:
+        """``(u, v, d, mpc_ms)``: MPC tracking of the filtered set-point (closed loop)."""
+        cfg = self.config
+        a = self._record.arrays
+        assert self.updater is not None and cfg.mpc is not None
+        mpc_ms = math.nan
+        y_fb = y_raw if clean else self.updater.estimator_.predict()
+        if math.isnan(self._ref):
+            self._ref = y_fb
+        sp = cfg.setpoint(t_k)
+        if cfg.reference_tau > 0:
+            alpha = 1.0 - math.exp(-cfg.dt / cfg.reference_tau)
+            self._ref += alpha * (sp - self._ref)
+        else:
+            self._ref = sp
+        a["setpoint"][k], a["reference"][k] = sp, self._ref
+        if late:
+            v, d = self._v_prev, self._d_prev
+        else:
+            res = self.controller.solve(y_fb, self._ref, self._v_prev)
+            mpc_ms = 1e3 * res.solve_time
+            a["mpc_ok"][k] = float(res.success)
+            if not res.success:
+                self._mpc_failures += 1
+            v, d = float(res.u_next), float(self._d[k])
+        u = float(np.clip(v + d, cfg.mpc.u_min, cfg.mpc.u_max))
+        self.controller.advance(v, d)
+        return u, v, d, mpc_ms
+
+    def _update(self, k: int, t_k: float, u: float, y_raw: float) -> tuple[float, float, float]:
+        """``(update_ms, fit, fit_static)``: step both twins and act on the update's events."""
+        a = self._record.arrays
+        versions = self._versions
+        assert versions is not None
+        upd_ms = math.nan
+        fit = fit_s = math.nan
+        if self.updater is not None and k >= self._k_cl:
+            r = self.updater.step(u, y_raw, t_k)
+            a["y_pred"][k] = r.y_pred_frozen
+            if r.model_update is None:
+                upd_ms = 1e3 * r.elapsed
+            fit = self.updater.monitor.fit
+            versions.after_update(r, k, t_k, u_op=self._v_prev, offload=self._offloaded(k))
+            if self.static is not None:
+                rs = self.static.step(u, y_raw, t_k)
+                a["y_pred_static"][k] = rs.y_pred_frozen
+                fit_s = self.static.monitor.fit
+        a["update_ms"][k] = upd_ms
+        a["version"][k] = versions.version
+        return upd_ms, fit, fit_s
+
+    def _advance(self, k: int, u: float, replay: bool) -> None:
+        """Apply ``u`` to the plant for one period (or take the stored reading) and pace."""
+        if replay and not self._replayable:
+            reading = self._replay.next_reading(k)
+            if reading is not None:
+                self._reading = reading
+        elif k + 1 < self.config.n_samples:
+            self._reading = self._plant_step(u)
+            if not replay:
+                late_s = self.clock.wait_until(self._reading.t + self._t_offset - self._clock_t0)
+                if self.clock.realtime and late_s > self.clock.tolerance:
+                    self._late_ticks += 1
+
+    def _recorded_input(self, k: int) -> float:
+        u = getattr(self.plant, "u", None)
+        if u is not None and k < len(u):
+            value = float(u[k])
+            return value if math.isfinite(value) else self._u_prev
+        return float(self._u_ident[k]) if k < self._u_ident.size else self._u_prev
+
+    def _plant_step(self, u: float) -> Reading:
+        if isinstance(self.plant, ReplayPlant):
+            return self.plant.step(None)
+        return self.plant.step(u)
+
+    # ------------------------------------------------------------------ identification
+    def _begin_twin(self, k: int, t: float) -> None:
+        """End of the identification phase: identify, build the twins and the controller."""
+        cfg = self.config
+        rec = self._record
+        a = rec.arrays
+        start = time.perf_counter()
+        fit = identify_initial(cfg, a["u"][:k].copy(), a["y_clean"][:k].copy())
+        # a resumed run replays its committed samples synchronously (as fast as possible)
+        background = self.background and not self._replay.active(k)
+        self.updater, self.static, rates = make_twins(fit, cfg, background=background,
+                                                      estimator=self.estimator)
+        catch_up(self.updater, self.static, a, k)  # the twins catch up on the samples so far
+        rec.identification = identification_info(fit, rates, k, start)
+        rec.event("phase", k, t, f"identified the initial model: fit {fit.fit_percent:.2f} %",
+                  rec.identification)
+        assert self._versions is not None
+        self._versions.first(self.updater, k, t, u_op=self._v_prev, offload=self._offloaded(k))
+
+    def _offloaded(self, k: int) -> bool:
+        """Whether a new version's optimisation runs in the worker (background, not replaying)."""
+        return self.background and self.config.retune and not self._replay.active(k)
+
+    def _set_estimator(self, estimator: Any) -> None:
+        self.estimator = estimator  # an accepted retraining: the twin runs it from now on
+
+    # ------------------------------------------------------------------ the loop
+    def run(
+        self, duration: float | None = None, *, resume: bool = True, progress: bool | None = None
+    ) -> TwinRun:
+        """Run (or resume) to the end and return the record.
+
+        Parameters
+        ----------
+        duration : float, optional
+            Override the configured duration, s.
+        resume : bool, default=True
+            Resume an unfinished run with the same configuration from the store.
+        progress : bool or None, default=None
+            Live progress display (tqdm on stderr): ``None`` shows it only on a
+            terminal.
+
+        Returns
+        -------
+        TwinRun
+        """
+        if duration is not None and not self._started:
+            self.config = replace(self.config, duration=float(duration))
+        if not self._started:
+            self.start(resume=resume)
+        bar = self._progress(progress)
+        try:
+            every = max(1, self.config.n_samples // 200)
+            while self._k < self.config.n_samples:
+                st = self.step()
+                if bar is not None and (st.k % every == 0 or self._k == self.config.n_samples):
+                    bar.update(self._k - bar.n)
+                    fit = "-" if math.isnan(st.fit) else f"{st.fit:.1f}%"
+                    bar.set_postfix_str(f"t={st.t:.1f}s {st.phase} v{st.version} fit={fit}",
+                                        refresh=False)
+        finally:
+            if bar is not None:
+                bar.close()
+        return self.finish()
+
+    def _progress(self, progress: bool | None) -> Any:
+        if progress is False:
+            return None
+        from tqdm.auto import tqdm
+
+        return tqdm(
+            total=self.config.n_samples, initial=self._k, unit="sample",
+            desc=f"twin {self.config.plant}", disable=None if progress is None else False,
+            dynamic_ncols=True, leave=True,
+        )
+
+    def finish(self, status: str | None = None) -> TwinRun:
+        """Commit what is pending, mark the run and return its record.
+
+        Parameters
+        ----------
+        status : str, optional
+            Final status; ``'finished'`` when every sample was processed,
+            else the run stays ``'running'`` (resumable).
+
+        Returns
+        -------
+        TwinRun
+        """
+        if not self._started:
+            raise TwinError("call start() (or run()) first")
+        complete = self._k >= self.config.n_samples
+        final = status if status is not None else ("finished" if complete else "running")
+        self._record.finish(final)
+        return self.result(final)
+
+    def result(self, status: str = "running") -> TwinRun:
+        """The record of the samples processed so far.
+
+        Parameters
+        ----------
+        status : str, default='running'
+
+        Returns
+        -------
+        TwinRun
+        """
+        counts = dict(self._sanitizer.counts)
+        counts.update(late_ticks=self._late_ticks, mpc_failures=self._mpc_failures)
+        if self.updater is not None:
+            uc = self.updater.counts
+            counts.update(reidentification_attempts=uc["attempts"],
+                          reidentifications_accepted=uc["accepted"])
+        return self._record.result(
+            self.config, self.plant.name, self._k, self._k_cl, counts, self._replay.summary(),
+            time.perf_counter() - self._wall0, status,
+        )
+
+    def close(self) -> None:
+        """Stop the workers, close the plant and the store if the twin opened it.
+
+        A background re-identification still running is cancelled (its
+        result is dropped); so is a background optimization job: what has
+        not started is cancelled, a running part (a weight retuning, an
+        estimator retraining) cannot be interrupted and is waited for, and
+        the worker thread is joined.  Call :meth:`finish` first to commit
+        the run.
+        """
+        for upd in (self.updater, self.static):
+            if upd is not None:
+                upd.close()
+        if self._versions is not None:
+            self._versions.worker.close()
+        self.plant.close()
+        if self._owns_history:
+            self.history.close()
+
+    def __enter__(self) -> DigitalTwin:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        return (
+            f"DigitalTwin(plant={self.plant.name!r}, k={self.k}/{self.config.n_samples}, "
+            f"version={self._versions.version if self._versions else 0}, store={self.store!r})"
+        )
