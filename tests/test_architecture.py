@@ -18,7 +18,7 @@ SRC = Path(__file__).resolve().parents[1] / "src" / "kautztwin"
 LAYERS = ["basis", "approx", "ident", "nn", "mpc", "twin", "service", "experiments", "cli"]
 # modules beside the layers, used by all; they import only from each other and from the
 # lowest layers (basis, approx), never from ident upwards
-SHARED = {"_validation", "_quadrature", "exceptions", "metrics", "plotting", "data",
+SHARED = {"_validation", "_quadrature", "_json", "exceptions", "metrics", "plotting", "data",
           "datasets", "simulators"}
 SHARED_MAY_IMPORT = {"basis", "approx"}
 ROOT = {"__init__", "__main__"}

@@ -29,13 +29,13 @@ from __future__ import annotations
 import json
 import math
 import os
-from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from .._json import to_jsonable
 from ..metrics import fit_percent_or_nan
 from .runtime import TwinRun
 
@@ -287,24 +287,7 @@ def compute_metrics(run: TwinRun) -> dict[str, Any]:
     if med is not None:
         acc["update_median_lt_5ms"] = med < 5.0
     out["acceptance"] = acc
-    return _clean(out)
-
-
-def _clean(obj: Any) -> Any:
-    if isinstance(obj, Mapping):
-        return {str(k): _clean(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [_clean(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return _clean(obj.tolist())
-    if isinstance(obj, bool | np.bool_):
-        return bool(obj)
-    if isinstance(obj, int | np.integer):
-        return int(obj)
-    if isinstance(obj, float | np.floating):
-        x = float(obj)
-        return x if math.isfinite(x) else None
-    return obj
+    return to_jsonable(out)
 
 
 # --------------------------------------------------------------------------- plots

@@ -13,13 +13,14 @@ from __future__ import annotations
 import json
 import math
 import time
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from ..._json import to_jsonable
 from ..._validation import check_int
 from ...approx.model import KautzModel
 from ...exceptions import DataError, KautzTwinError
@@ -252,30 +253,10 @@ class Prediction:
 
 
 # ---------------------------------------------------------------------- shared helpers
-def _jsonable(obj: Any, name: str) -> Any:
-    """``obj`` with numpy values, tuples and non-finite floats made JSON-ready."""
-    if obj is None or isinstance(obj, str | bool):
-        return obj
-    if isinstance(obj, np.bool_):
-        return bool(obj)
-    if isinstance(obj, int | np.integer):
-        return int(obj)
-    if isinstance(obj, float | np.floating):
-        x = float(obj)
-        return x if math.isfinite(x) else None
-    if isinstance(obj, complex | np.complexfloating):
-        return [_jsonable(obj.real, name), _jsonable(obj.imag, name)]
-    if isinstance(obj, np.ndarray):
-        return _jsonable(obj.tolist(), name)
-    if isinstance(obj, Mapping):
-        return {str(key): _jsonable(value, name) for key, value in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [_jsonable(value, name) for value in obj]
-    raise DataError(f"{name} holds a {type(obj).__name__} ({obj!r}), which JSON cannot represent")
-
-
 def _dumps(obj: Any, name: str) -> str:
-    return json.dumps(_jsonable(obj, name), allow_nan=False, sort_keys=True, separators=(",", ":"))
+    return json.dumps(
+        to_jsonable(obj, name), allow_nan=False, sort_keys=True, separators=(",", ":")
+    )
 
 
 def _check_int(value: Any, name: str, *, minimum: int | None = 0) -> int:

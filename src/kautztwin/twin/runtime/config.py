@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from ..._json import to_jsonable
 from ...exceptions import DataError
 from ..physical import HydraulicPlant, Plant, ReplayPlant, TCLabPlant
 from ..prediction import MPCSettings
@@ -321,7 +322,7 @@ class TwinConfig:
             elif isinstance(v, Mapping):
                 v = dict(v)
             out[name] = v
-        return json.loads(json.dumps(_json_ready(out), allow_nan=False))
+        return json.loads(json.dumps(to_jsonable(out), allow_nan=False))
 
     # ------------------------------------------------------------------ profiles
     @classmethod
@@ -464,23 +465,6 @@ def _plant_kind(plant: Any) -> str:
     if isinstance(plant, ReplayPlant):
         return "replay"
     return type(plant).__name__
-
-
-def _json_ready(obj: Any) -> Any:
-    if isinstance(obj, Mapping):
-        return {str(k): _json_ready(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [_json_ready(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return _json_ready(obj.tolist())
-    if isinstance(obj, bool | np.bool_):
-        return bool(obj)
-    if isinstance(obj, int | np.integer):
-        return int(obj)
-    if isinstance(obj, float | np.floating):
-        x = float(obj)
-        return x if math.isfinite(x) else None
-    return obj
 
 
 def parse_setpoints(

@@ -22,11 +22,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from ..._json import to_jsonable
 from ...exceptions import DataError
 from ..digital import DigitalModel
 from ..history import HistoryStore, Measurements, SQLiteHistory
 from ..physical import Reading
-from .config import TwinConfig, _json_ready
+from .config import TwinConfig
 from .protocols import TwinError
 from .results import _ARRAYS, TwinEvent, TwinRun
 
@@ -227,7 +228,7 @@ class RunRecord:
         if store and (kind, int(k)) not in self._stored_events and self.run_id is not None:
             self.history.log_event(
                 self.run_id, kind, message, k=int(k), t=None if math.isnan(t) else float(t),
-                payload=_json_ready(dict(payload or {})),
+                payload=to_jsonable(dict(payload or {})),
             )
 
     def store_version(self, dm: DigitalModel, k: int, t: float, offset: float) -> None:
