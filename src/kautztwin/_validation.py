@@ -7,6 +7,7 @@ one kind of bad input gets one wording everywhere.
 from __future__ import annotations
 
 import math
+import os
 from typing import Any
 
 import numpy as np
@@ -19,13 +20,20 @@ __all__ = [
     "check_dt",
     "check_finite",
     "check_int",
+    "check_memory",
     "check_nonnegative",
     "check_number",
     "check_positive",
     "check_records",
     "check_time",
+    "format_bytes",
+    "memory_limit",
     "to_float_or_nan",
+    "total_memory",
 ]
+
+#: the share of the machine's memory one array-building step may ask for
+MEMORY_FRACTION = 0.5
 
 
 def check_finite(x: NDArray, name: str) -> None:
@@ -169,3 +177,132 @@ def to_float_or_nan(value: Any) -> float:
     except (TypeError, ValueError, OverflowError):
         return math.nan
     return out
+
+
+def _read_int(path: str) -> int | None:
+    try:
+        with open(path, encoding="ascii") as fh:
+            text = fh.read().strip()
+    except OSError:
+        return None
+    return int(text) if text.isdigit() else None
+
+
+def total_memory() -> int | None:
+    """The machine's physical memory in bytes (a container's limit if smaller), or ``None``.
+
+    Read from ``os.sysconf`` (``SC_PAGE_SIZE * SC_PHYS_PAGES``), else ``/proc/meminfo``;
+    a cgroup memory limit (``/sys/fs/cgroup/memory.max`` or the v1
+    ``memory.limit_in_bytes``) lowers the figure when it is smaller.
+
+    Returns
+    -------
+    int or None
+        Bytes, or ``None`` where none of these sources can be read.
+    """
+    total: int | None = None
+    try:
+        total = int(os.sysconf("SC_PAGE_SIZE")) * int(os.sysconf("SC_PHYS_PAGES"))
+    except (AttributeError, ValueError, OSError):
+        total = None
+    if not total or total <= 0:
+        try:
+            with open("/proc/meminfo", encoding="ascii") as fh:
+                for line in fh:
+                    if line.startswith("MemTotal:"):
+                        total = int(line.split()[1]) * 1024
+                        break
+        except (OSError, ValueError, IndexError):
+            total = None
+    for path in ("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory/memory.limit_in_bytes"):
+        limit = _read_int(path)
+        if limit and (total is None or limit < total):
+            total = limit
+    return total if total and total > 0 else None
+
+
+def memory_limit() -> tuple[float, int | None]:
+    """The most bytes one step may allocate, and the total it is derived from.
+
+    Returns
+    -------
+    limit : float
+        ``MEMORY_FRACTION`` (half) of :func:`total_memory`; ``inf`` when the total is unknown.
+    total : int or None
+        :func:`total_memory`.
+    """
+    total = total_memory()
+    return (math.inf if total is None else MEMORY_FRACTION * total), total
+
+
+def format_bytes(n_bytes: float) -> str:
+    """A byte count as short text: ``'373 GiB'``, ``'1.5 MiB'``, ``'512 B'``.
+
+    Parameters
+    ----------
+    n_bytes : float
+
+    Returns
+    -------
+    str
+
+    Examples
+    --------
+    >>> from kautztwin._validation import format_bytes
+    >>> format_bytes(4e11), format_bytes(1536 * 1024), format_bytes(512)
+    ('373 GiB', '1.5 MiB', '512 B')
+    """
+    value = float(n_bytes)
+    for unit in ("B", "KiB", "MiB", "GiB", "TiB", "PiB"):
+        if value < 1024 or unit == "PiB":
+            if unit == "B":
+                return f"{value:.0f} B"
+            return f"{value:.3g} {unit}"
+        value /= 1024
+    raise AssertionError("unreachable")  # pragma: no cover
+
+
+def check_memory(n_bytes: float, what: str) -> float:
+    """Refuse, before any work, a step whose arrays would not fit in this machine's memory.
+
+    The limit is half the machine's memory (:func:`memory_limit`), so that the
+    step and its temporaries fit beside everything else.
+
+    Parameters
+    ----------
+    n_bytes : float
+        The estimated size of the arrays the step builds, in bytes (computed
+        from the requested shape before anything is allocated; may exceed the
+        int range).
+    what : str
+        The request in the user's terms, e.g. ``"--records 100000 x --samples 900"``.
+
+    Returns
+    -------
+    float
+        ``n_bytes``.
+
+    Raises
+    ------
+    DataError
+        ``"<what> would need 373 GiB; at most 11.8 GiB with this machine's 23.5 GiB of
+        memory"`` when ``n_bytes`` exceeds the limit (or is not a finite number).
+
+    Examples
+    --------
+    >>> from kautztwin._validation import check_memory
+    >>> check_memory(8 * 900 * 30, "30 records")
+    216000
+    """
+    limit, total = memory_limit()
+    if not (isinstance(n_bytes, int | float | np.integer | np.floating) and n_bytes >= 0):
+        raise DataError(f"{what}: cannot size the request ({n_bytes!r} bytes)")
+    if not math.isfinite(float(n_bytes)) or n_bytes > limit:
+        need = "more than any machine has" if not math.isfinite(float(n_bytes)) else (
+            f"{format_bytes(n_bytes)}"
+        )
+        raise DataError(
+            f"{what} would need {need}; at most {format_bytes(limit)} with this machine's "
+            f"{format_bytes(total or 0)} of memory"
+        )
+    return n_bytes

@@ -27,6 +27,8 @@ REAL = "real"
 PAIR = "pair"
 _IMAG_TOL = 1e-12  # |Im| below this (relative) counts as a real pole
 _PAIR_TOL = 1e-8  # relative tolerance when matching a complex pole with its conjugate
+#: largest |p| of a continuous-time pole: a pair's block squares it (|p|^2 overflows past 1e154)
+MAX_POLE_MAGNITUDE = 1e100
 
 
 def parse_poles(poles: ArrayLike, dt: float) -> tuple[tuple[str, ...], NDArray[np.float64]]:
@@ -53,6 +55,11 @@ def parse_poles(poles: ArrayLike, dt: float) -> tuple[tuple[str, ...], NDArray[n
     for i, pi in enumerate(p):
         if not np.isfinite(pi):
             raise PoleError(f"poles[{i}] = {pi} is not finite")
+        if dt == 0 and abs(pi) > MAX_POLE_MAGNITUDE:
+            raise PoleError(
+                f"poles[{i}] = {_fmt(pi)} is too large to represent (|p| > "
+                f"{MAX_POLE_MAGNITUDE:g}); rescale time so that the poles are moderate numbers"
+            )
         if dt == 0 and pi.real >= 0:
             raise UnstableModelError(
                 f"poles[{i}] = {_fmt(pi)} has Re >= 0; continuous-time poles must satisfy Re(p) < 0"

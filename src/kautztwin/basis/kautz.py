@@ -11,7 +11,7 @@ import numpy as np
 import scipy.linalg
 from numpy.typing import ArrayLike, NDArray
 
-from .._validation import check_dt, check_finite
+from .._validation import check_dt, check_finite, check_memory
 from ..exceptions import DimensionError, PoleError
 from ._blocks import (
     PAIR,
@@ -25,6 +25,19 @@ from ._blocks import (
 from ._propagate import continuous_functions, discrete_functions, sample_indices
 
 __all__ = ["KautzBasis", "LaguerreBasis"]
+
+
+#: float64 arrays of n x n that building a basis of n functions holds at once (the network
+#: matrix as built and its read-only copy, plus a temporary)
+_MATRICES_PER_BASIS = 3
+
+
+def _check_basis_size(n: int) -> None:
+    """Refuse, before allocating, a basis whose n x n network matrix does not fit in memory."""
+    check_memory(
+        8.0 * _MATRICES_PER_BASIS * float(n) ** 2,
+        f"a basis of {n} functions (its {n} x {n} network matrix)",
+    )
 
 
 def _readonly(x: NDArray) -> NDArray:
@@ -128,6 +141,7 @@ class KautzBasis:
         object.__setattr__(self, "_params", _readonly(params))
         object.__setattr__(self, "_dt", dt)
         object.__setattr__(self, "_delayed", delayed)
+        _check_basis_size(sum(1 if kind != PAIR else 2 for kind in kinds))
         build = continuous_matrices if dt == 0 else discrete_matrices
         A, B = build(kinds, params[None, :])
         object.__setattr__(self, "_A", _readonly(A[0]))
@@ -440,6 +454,7 @@ class LaguerreBasis(KautzBasis):
             raise PoleError(f"a Laguerre pole must be real, got {pole}")
         if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
             raise PoleError(f"n must be a positive integer, got {n!r}")
+        _check_basis_size(int(n))
         super().__init__([float(np.real(pole))] * int(n), dt=dt, delayed=delayed)
 
     @property

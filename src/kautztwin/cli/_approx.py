@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -21,7 +22,7 @@ from ._common import (
 __all__ = ["register", "run"]
 
 DESCRIPTION = """\
-Approximate a sampled impulse or unit-step response by a Kautz model
+Approximate a sampled impulse or step response by a Kautz model
 G_N(s) = sum_i c_i K_i(s) and report the coefficients c_i, the poles, the
 integral of squared error (ISE) and the fit percent.
 
@@ -29,6 +30,16 @@ The poles are either given (--poles; the coefficients are then the orthogonal
 projection of the record onto the basis, or a least-squares fit) or chosen
 automatically (--optimize-poles N: N poles minimising the error, by variable
 projection).  Give exactly one of the two.
+
+The model is per unit input: a step of height A (or an impulse of area A)
+is divided by A first, given by --amplitude A or, for a step, read from the
+record's input column with --input COLUMN.  Without either, DATA is taken to be
+a unit response, and a record of a step of 0.5 gives half the gain.
+
+A search that stops at its iteration budget with a pair of complex poles
+collapsing onto the real axis (the best model wants two equal real poles) is
+restarted once from those real poles; if it still does not converge, the
+warning says so and a larger --max-iter or another N may help.
 
 Without DATA the built-in reference system 6/((s+1)(s+3)(s^2+s+4)) is used
 (900 samples on [0, 20] s), optionally with --noise, so the command runs with
@@ -40,7 +51,9 @@ examples:
   kautztwin approx --poles "-1,-3,-0.5+1.9365j,-0.5-1.9365j"
   kautztwin approx --poles "-1,-3,-0.5+-1.9365j" --kind step --noise 0.05 --plot fit.png
   kautztwin approx --optimize-poles 4 --json
-  kautztwin approx data.csv --time time --response y --kind step --optimize-poles 3
+  kautztwin simulate hydraulic --records 1 --out data
+  kautztwin approx data/record_01.csv --time t --response y --input u --kind step \\
+      --optimize-poles 3                       (a step of 0.5: the gain is per unit command)
 """
 
 
@@ -76,10 +89,52 @@ def register(subparsers: argparse._SubParsersAction, common: argparse.ArgumentPa
     out.add_argument(
         "--json", action="store_true",
         help="print one JSON object instead of the table: coefficients, poles ([re, im] "
-        "pairs), ise, fit_percent, kind, dc_gain, source, n_samples; with --poles also mse "
+        "pairs), ise, fit_percent, kind, dc_gain (per unit input), amplitude, source, "
+        "n_samples; with --poles also mse "
         "and dt, with --optimize-poles also initial_poles, success, message, n_evaluations",
     )
     p.set_defaults(run=run)
+
+
+#: a complex pair with |Im p| below this share of |Re p| is a collapsing pair (see _restart)
+_COLLAPSING_PAIR = 0.05
+
+
+def _real_restart(poles: np.ndarray) -> list[complex] | None:
+    """Starting poles with every collapsing pair split into two real poles, or None if none."""
+    out: list[complex] = []
+    changed = False
+    for p in poles:
+        if p.imag != 0 and abs(p.imag) <= _COLLAPSING_PAIR * abs(p.real):
+            out.append(complex(p.real * (1.0 + np.sign(p.imag) * _COLLAPSING_PAIR)))
+            changed = True
+        else:
+            out.append(complex(p))
+    return out if changed else None
+
+
+def _optimize(args: argparse.Namespace, t: np.ndarray, y: np.ndarray) -> Any:
+    """optimize_poles, restarted once from real poles when a pair collapsed unconverged.
+
+    The variable-projection search parametrises a complex pair by its real and
+    imaginary parts; when the optimum is a double real pole the imaginary part
+    creeps towards zero and the budget runs out.  Starting again from two real
+    poles there converges in a few dozen evaluations.
+    """
+    import kautztwin
+
+    kwargs = {} if args.max_iter is None else {"max_iter": args.max_iter}
+    res = kautztwin.optimize_poles(t, y, args.optimize_poles, kind=args.kind, **kwargs)
+    if res.success:
+        return res
+    start = _real_restart(np.asarray(res.basis.poles))
+    if start is None:
+        return res
+    again = kautztwin.optimize_poles(t, y, start, kind=args.kind, **kwargs)
+    if again.ise <= res.ise * (1 + 1e-9):
+        return replace(again, n_evaluations=res.n_evaluations + again.n_evaluations,
+                       initial_basis=res.initial_basis)
+    return res
 
 
 def _fit(args: argparse.Namespace, t: np.ndarray, y: np.ndarray) -> tuple[Any, dict[str, Any], str]:
@@ -91,13 +146,15 @@ def _fit(args: argparse.Namespace, t: np.ndarray, y: np.ndarray) -> tuple[Any, d
         method = args.method or "quadrature"
         res = kautztwin.approximate(basis, t, y, kind=args.kind, method=method)
         return res.model, res.to_dict(), method
-    kwargs = {} if args.max_iter is None else {"max_iter": args.max_iter}
-    res = kautztwin.optimize_poles(t, y, args.optimize_poles, kind=args.kind, **kwargs)
+    res = _optimize(args, t, y)
     summary = res.to_dict()
     summary.setdefault("kind", args.kind)
     summary.setdefault("dc_gain", res.model.dc_gain)
     if not res.success:
-        sys.stderr.write(f"kautztwin: warning: the pole search did not converge: {res.message}\n")
+        sys.stderr.write(
+            f"kautztwin: warning: the pole search did not converge: {res.message} (the poles "
+            "are the best found; try a larger --max-iter, or another --optimize-poles N)\n"
+        )
     return res.model, summary, "optimized poles (variable projection)"
 
 
@@ -128,7 +185,8 @@ def run(args: argparse.Namespace) -> int:
     plot = check_output(args.plot, "--plot") if args.plot else None
     record = load_record(args)
     model, summary, method = _fit(args, record.t, record.y)
-    summary.update(source=record.source, n_samples=int(record.t.size))
+    summary.update(source=record.source, n_samples=int(record.t.size),
+                   amplitude=record.amplitude)
     if args.data is None and args.noise:
         # built-in reference with noise: also say how close the model is to the noise-free truth
         from ..data import reference_response
@@ -143,7 +201,8 @@ def run(args: argparse.Namespace) -> int:
         yhat = model.impulse(record.t) if args.kind == "impulse" else model.step(record.t)
         fig, (ax,) = plotting._new_figure(1, panel_size=(7.5, 4.5))
         plotting.plot_approximation(
-            record.t, record.y, yhat, ax=ax, ylabel=f"{args.kind} response",
+            record.t, record.y, yhat, ax=ax,
+            ylabel=f"{args.kind} response" + (" per unit input" if record.amplitude != 1 else ""),
             approx_label=f"Kautz approximant, N = {model.n_functions}",
             title=f"fit {summary['fit_percent']:.3f} %, ISE {summary['ise']:.3g}",
         )
@@ -152,13 +211,36 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print_json(summary)
         return 0
-    _print_table(summary, model, method, record.t)
+    _print_table(summary, model, method, record)
     return 0
 
 
-def _print_table(summary: dict[str, Any], model: Any, method: str, t: np.ndarray) -> None:
+def _kind_phrase(kind: str) -> str:
+    """``'a step of'`` or ``'an impulse of area'``: the input's size in words.
+
+    Parameters
+    ----------
+    kind : {'impulse', 'step'}
+
+    Returns
+    -------
+    str
+    """
+    return "a step of" if kind == "step" else "an impulse of area"
+
+
+def _print_table(summary: dict[str, Any], model: Any, method: str, record: Any) -> None:
+    t = record.t
     lines = [
         f"data:    {summary['source']}, {t.size} samples on [{t[0]:g}, {t[-1]:g}] s",
+    ]
+    if record.amplitude != 1:
+        lines.append(
+            f"input:   {_kind_phrase(summary['kind'])} {record.amplitude:g} "
+            f"({record.amplitude_source}); the response is divided by it, so the model, its "
+            "coefficients and DC gain are per unit input"
+        )
+    lines += [
         f"method:  {method}",
         "",
         f"{'i':>3}  {'pole':<24}{'coefficient':>18}",

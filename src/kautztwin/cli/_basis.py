@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+import warnings
 
 import numpy as np
 
@@ -13,6 +14,13 @@ from ._common import CLIError, check_output, format_pole, parse_number, parse_po
 __all__ = ["register", "run"]
 
 _MAX_SAMPLES = 1_000_000
+
+#: largest max|Gram - I| accepted: beyond it the computed functions are not orthonormal
+GRAM_TOLERANCE = 1e-6
+
+#: float64 n x n matrices the command holds at once (the network matrix, the Lyapunov
+#: solution for the Gram matrix and its Schur-form workspace)
+_MATRICES = 6
 
 DESCRIPTION = """\
 Plot every function of an orthonormal basis against time (the paper's Figure 2)
@@ -75,6 +83,59 @@ def register(subparsers: argparse._SubParsersAction, common: argparse.ArgumentPa
     p.set_defaults(run=run)
 
 
+def _n_functions(args: argparse.Namespace) -> int:
+    """The number of basis functions the flags ask for (before anything is built)."""
+    if args.laguerre is not None:
+        if args.n < 1:
+            raise CLIError(f"--n must be a positive number of functions, got {args.n}")
+        return args.n
+    return len(parse_poles(args.poles))
+
+
+def _check_size(args: argparse.Namespace) -> None:
+    """Refuse, before any work, a basis whose matrices would not fit in memory."""
+    from .._validation import check_memory
+
+    n = _n_functions(args)
+    samples = 900 if args.samples is None else max(args.samples, 0)
+    flag = f"--n {n}" if args.laguerre is not None else f"--poles with {n} poles"
+    check_memory(
+        8.0 * (_MATRICES * float(n) ** 2 + 2.0 * n * min(samples, _MAX_SAMPLES)),
+        f"{flag} (a {n} x {n} Gram matrix and {n} curves)",
+    )
+
+
+def _check_orthonormal(basis) -> float:
+    """Return max|Gram - I|; refuse a basis that is not orthonormal in floating point."""
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # scipy's "eigenvalue pair ... perturbing" notice
+        gram = basis.gram()
+    deviation = float(np.max(np.abs(gram - np.eye(basis.n_functions))))
+    if deviation <= GRAM_TOLERANCE:  # also False for NaN
+        return deviation
+    poles = np.asarray(basis.poles)
+    if basis.dt == 0:
+        rates = -poles.real
+        slow, fast = float(np.min(rates)), float(np.max(np.abs(poles)))
+        if fast / slow > 1e9:
+            hint = (
+                f"the largest pole magnitude ({fast:.3g}) is {fast / slow:.3g} times the "
+                f"slowest decay rate ({slow:.3g} 1/s); keep that ratio below about 1e9 "
+                "(no pole much nearer the imaginary axis, or much faster, than the rest)"
+            )
+        else:
+            hint = (
+                f"the poles ({slow:.3g} to {fast:.3g} 1/s) are too extreme for floating "
+                "point; rescale time so that they are moderate numbers (about 1e-6 to 1e6)"
+            )
+    else:
+        hint = "move the poles away from the unit circle"
+    raise CLIError(
+        f"the basis is not orthonormal in floating point (max |Gram - I| = {deviation:.2e} "
+        f"> {GRAM_TOLERANCE:g}): {hint}"
+    )
+
+
 def _basis(args: argparse.Namespace):
     from ..basis import KautzBasis, LaguerreBasis
 
@@ -122,12 +183,17 @@ def run(args: argparse.Namespace) -> int:
     from .. import plotting
 
     out = check_output(args.out, "--out")
+    if (args.poles is None) == (args.laguerre is None):
+        raise CLIError("give exactly one of --poles LIST and --laguerre POLE")
+    if args.laguerre is not None and args.n is None:
+        raise CLIError("--laguerre needs --n, the number of functions")
+    _check_size(args)
     basis = _basis(args)
+    deviation = _check_orthonormal(basis)
     t = _grid(args, basis)
     fig, (ax,) = plotting._new_figure(1, panel_size=(7.5, 4.5))
     plotting.plot_basis(basis, t, ax=ax)
     plotting.save_figure(fig, out)
-    deviation = float(np.max(np.abs(basis.gram() - np.eye(basis.n_functions))))
     if args.json:
         A, B = basis.state_space()
         print_json({

@@ -33,7 +33,10 @@ __all__ = [
 #: flags whose values may start with "-" (negative poles); see join_option_values
 VALUE_FLAGS = ("--poles", "--laguerre", "--span")
 
-_PAIR = re.compile(r"^(?P<re>[+-]?[^+\-±]+?)(?:\+-|\+/-|±)(?P<im>[^+\-±]+)$")
+_MANTISSA = r"(?:[^+\-±eE]|[eE](?=[+-]?\d)[+-]?)+?"  # a number; 'e-9' exponents allowed
+_PAIR = re.compile(
+    rf"^(?P<re>[+-]?{_MANTISSA})(?:\+-|\+/-|±)(?P<im>(?:[^+\-±eE]|[eE][+-]?)+)$"
+)
 
 
 class CLIError(KautzTwinError, ValueError):
@@ -171,17 +174,45 @@ def parse_span(text: str) -> tuple[float, float]:
     return lo, hi
 
 
+#: largest relative spread (max - min over |median|) of an --input column that is still one step
+STEP_INPUT_TOLERANCE = 0.01
+
+
 @dataclass(frozen=True)
 class Record:
-    """One sampled response and where it came from."""
+    """One sampled response and where it came from.
+
+    Attributes
+    ----------
+    t : ndarray
+        Sample times.
+    y : ndarray
+        The response per unit input (already divided by ``amplitude``).
+    source : str
+        Where the record came from, for the report.
+    amplitude : float
+        The input's size the measured response was divided by (1 for a unit input).
+    amplitude_source : str
+        How ``amplitude`` was found (``'--amplitude'``, ``"column 'u'"``), empty for 1.
+    """
 
     t: NDArray[np.float64]
     y: NDArray[np.float64]
     source: str
+    amplitude: float = 1.0
+    amplitude_source: str = ""
 
 
 def add_data_arguments(parser: Any, *, noise: bool) -> None:
-    """Add DATA, --time, --response, --kind (and --noise/--seed) to a command."""
+    """Add DATA, --time, --response, --kind, --amplitude, --input (and --noise/--seed).
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser or argument group
+        Where the arguments go.
+    noise : bool
+        Also add ``--noise`` and ``--seed`` (built-in reference only).
+    """
     parser.add_argument(
         "data", nargs="?", metavar="DATA.csv",
         help="CSV file with a header row (comma, semicolon, tab or whitespace separated). "
@@ -194,8 +225,20 @@ def add_data_arguments(parser: Any, *, noise: bool) -> None:
                         help="name of the response column in DATA (default: %(default)s)")
     parser.add_argument(
         "--kind", choices=("impulse", "step"), default="impulse",
-        help="what the response is: an impulse response, or a unit-step response from rest "
-        "(default: %(default)s)",
+        help="what the response is: an impulse response, or a step response from rest; a "
+        "unit impulse or step unless --amplitude or --input gives its size (default: "
+        "%(default)s)",
+    )
+    parser.add_argument(
+        "--amplitude", type=float, default=None, metavar="A",
+        help="DATA only: size of the input that produced the response (the step's height, or "
+        "the impulse's area); the response is divided by A, so coefficients and DC gain are "
+        "per unit input (default: 1)",
+    )
+    parser.add_argument(
+        "--input", default=None, metavar="COLUMN",
+        help="DATA only, --kind step: read the step's height from this input column (constant "
+        "from t = 0, as in 'kautztwin simulate' records) instead of giving --amplitude",
     )
     if noise:
         parser.add_argument(
@@ -218,6 +261,8 @@ def load_record(args: argparse.Namespace) -> Record:
     Returns
     -------
     Record
+        Its response is per unit input: divided by ``--amplitude`` or by the
+        step height read from the ``--input`` column.
 
     Raises
     ------
@@ -225,12 +270,14 @@ def load_record(args: argparse.Namespace) -> Record:
         From the CSV reader (missing file or column, NaN, ...) or on a time
         column that is not strictly increasing.
     CLIError
-        On flags that contradict each other.
+        On flags that contradict each other, or an ``--input`` column that is
+        not one constant step.
     """
     from .._validation import check_time
     from ..data import reference_response
     from ..data.csv import read_columns
 
+    _check_input_flags(args)
     noise = getattr(args, "noise", None)
     seed = getattr(args, "seed", None)
     if args.data is None:
@@ -244,7 +291,14 @@ def load_record(args: argparse.Namespace) -> Record:
         raise CLIError("--noise and --seed apply to the built-in reference only; drop them or DATA")
     if args.time == args.response:
         raise CLIError(f"--time and --response name the same column {args.time!r}")
-    cols = read_columns(args.data, [args.time, args.response])
+    input_column = getattr(args, "input", None)
+    names = [args.time, args.response]
+    if input_column is not None:
+        if input_column in names:
+            raise CLIError(f"--input names the {input_column!r} column that is already "
+                           f"--{'time' if input_column == args.time else 'response'}")
+        names.append(input_column)
+    cols = read_columns(args.data, names)
     t = cols[args.time]
     steps = np.diff(t)
     if np.any(steps <= 0):
@@ -254,7 +308,46 @@ def load_record(args: argparse.Namespace) -> Record:
             f"({args.time} = {t[k]:g}) does not come after row {k} ({args.time} = {t[k - 1]:g})"
         )
     t = check_time(t, name=f"time column {args.time!r}")
-    return Record(t, cols[args.response], f"{args.data} (columns {args.time}, {args.response})")
+    source = f"{args.data} (columns {args.time}, {args.response})"
+    amplitude, how = _input_size(args, cols.get(input_column) if input_column else None)
+    if amplitude == 1.0:
+        return Record(t, cols[args.response], source)
+    return Record(t, cols[args.response] / amplitude, source, amplitude, how)
+
+
+def _check_input_flags(args: argparse.Namespace) -> None:
+    """Reject --amplitude / --input where they do not apply (before any data is read)."""
+    amplitude = getattr(args, "amplitude", None)
+    input_column = getattr(args, "input", None)
+    if amplitude is None and input_column is None:
+        return
+    if amplitude is not None and input_column is not None:
+        raise CLIError("give only one of --amplitude A and --input COLUMN (the step's size)")
+    if args.data is None:
+        raise CLIError("--amplitude and --input apply to DATA only; the built-in reference "
+                       "response is already per unit input")
+    if input_column is not None and args.kind != "step":
+        raise CLIError("--input applies to --kind step; give an impulse's area with --amplitude")
+    if amplitude is not None and not (math.isfinite(amplitude) and amplitude != 0):
+        raise CLIError(f"--amplitude must be a finite nonzero number, got {amplitude:g}")
+
+
+def _input_size(args: argparse.Namespace, u: NDArray[np.float64] | None) -> tuple[float, str]:
+    """The size of the input (and how it was found): --amplitude, the --input column, or 1."""
+    amplitude = getattr(args, "amplitude", None)
+    if amplitude is not None:
+        return float(amplitude), "--amplitude"
+    if u is None:
+        return 1.0, ""
+    level = float(np.median(u))
+    spread = float(np.max(u) - np.min(u))
+    if level == 0 or spread > STEP_INPUT_TOLERANCE * abs(level):
+        raise CLIError(
+            f"--input {args.input}: not one step from rest at t = 0 (the column ranges from "
+            f"{np.min(u):g} to {np.max(u):g}); approx needs a constant input after the step "
+            "(give its height with --amplitude), or use 'kautztwin identify' for any input"
+        )
+    return level, f"column {args.input!r}"
 
 
 def check_output(path: str, flag: str) -> Path:

@@ -1,4 +1,4 @@
-"""``kautztwin plant serve``: a simulated plant behind an OPC UA server."""
+"""``kautztwin plant serve``: a simulated plant behind an OPC UA server or on an MQTT broker."""
 
 from __future__ import annotations
 
@@ -34,6 +34,11 @@ plants:
               dt 0.02 s; --drift slows its dominant pole during the run
   tclab       Temperature Control Lab emulator: heater 0..100 % -> degC, dt 1 s
 
+With --transport mqtt the plant is an MQTT client of --broker instead: it publishes
+samples {"k","t","y","u","ts"} on kautztwin/PLANT/y, takes {"u": ..} on kautztwin/PLANT/u
+(out-of-range inputs are rejected on kautztwin/PLANT/u/ack), and keeps kautztwin/PLANT/meta
+and kautztwin/PLANT/status retained.
+
 Runs until Ctrl-C / SIGTERM, or for --duration wall-clock seconds.
 """
 
@@ -42,6 +47,7 @@ examples:
   kautztwin plant serve --plant hydraulic --speed 10 --drift 0.4
   kautztwin plant serve --plant tclab --endpoint opc.tcp://127.0.0.1:4841 --speed 20
   kautztwin plant serve --plant hydraulic --drift 0.4@30,60 --duration 120
+  kautztwin plant serve --plant hydraulic --transport mqtt --broker mqtt://127.0.0.1:1883
 """
 
 
@@ -69,8 +75,14 @@ def register(subparsers: argparse._SubParsersAction, common: argparse.ArgumentPa
     )
     s.add_argument("--plant", required=True, choices=("hydraulic", "tclab"),
                    help="which simulator to serve")
+    s.add_argument("--transport", choices=("opcua", "mqtt"), default="opcua",
+                   help="serve over OPC UA (a server) or MQTT (a client of --broker) "
+                   "(default: %(default)s)")
     s.add_argument("--endpoint", default="opc.tcp://127.0.0.1:4840", metavar="URL",
-                   help="where to listen (default: %(default)s; port 0 picks a free port)")
+                   help="OPC UA: where to listen (default: %(default)s; port 0 picks a free "
+                   "port)")
+    s.add_argument("--broker", default="mqtt://127.0.0.1:1883", metavar="URL",
+                   help="MQTT: the broker to publish on (default: %(default)s)")
     s.add_argument("--speed", default="1", metavar="X",
                    help="plant seconds per wall-clock second (default: 1, real time)")
     s.add_argument(
@@ -145,14 +157,22 @@ def serve(args: argparse.Namespace) -> int:
     if args.plant != "hydraulic" and args.drift is not None:
         raise CLIError("--drift applies to the hydraulic plant only")
     drift, events = _parse_drift(args.drift)
-    from ..service import PlantServer
+    from ..service import MQTTPlantServer, PlantServer
     from ..twin import make_plant
-    from ..twin.physical import parse_endpoint
+    from ..twin.physical import parse_broker, parse_endpoint
 
-    parse_endpoint(args.endpoint)  # a one-line error before the plant is built
+    mqtt = getattr(args, "transport", "opcua") == "mqtt"
+    if mqtt:  # a one-line error before the plant is built
+        parse_broker(args.broker)
+    else:
+        parse_endpoint(args.endpoint)
     logging.getLogger("asyncua").setLevel(logging.ERROR)
     plant = make_plant(args.plant, drift=drift, drift_events=events, seed=args.seed, noise=noise)
-    server = PlantServer(plant, endpoint=args.endpoint, speed=speed)
+    server: Any
+    if mqtt:
+        server = MQTTPlantServer(plant, broker=args.broker, speed=speed)
+    else:
+        server = PlantServer(plant, endpoint=args.endpoint, speed=speed)
     stop = threading.Event()
     previous: dict[int, Any] = {}
     if threading.current_thread() is threading.main_thread():
@@ -160,12 +180,18 @@ def serve(args: argparse.Namespace) -> int:
             previous[sig] = signal.signal(sig, lambda *_: stop.set())
     try:
         server.start()
-        ids = server.node_ids
         drift_text = f", pole drift {drift:g} at {','.join(f'{e:g}' for e in events)} s" \
             if drift else ""
-        print(f"serving {args.plant} on {server.endpoint} (namespace {server.namespace}: "
-              f"{ids['u']} in, {ids['y']} out; dt {server.dt:g} s, speed x{server.speed:g}"
-              f"{drift_text}); Ctrl-C to stop", flush=True)
+        if mqtt:
+            topics = server.topics
+            print(f"serving {args.plant} on {server.broker} ({topics['u']} in, {topics['y']} "
+                  f"out; dt {server.dt:g} s, speed x{server.speed:g}{drift_text}); "
+                  "Ctrl-C to stop", flush=True)
+        else:
+            ids = server.node_ids
+            print(f"serving {args.plant} on {server.endpoint} (namespace {server.namespace}: "
+                  f"{ids['u']} in, {ids['y']} out; dt {server.dt:g} s, speed x{server.speed:g}"
+                  f"{drift_text}); Ctrl-C to stop", flush=True)
         end = math.inf if duration is None else time.monotonic() + duration
         while not stop.is_set() and time.monotonic() < end:
             stop.wait(min(0.5, max(0.0, end - time.monotonic())))

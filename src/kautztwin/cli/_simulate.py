@@ -12,9 +12,13 @@ from typing import Any
 
 import numpy as np
 
+from .._validation import check_memory
 from ._common import CLIError, print_json
 
 __all__ = ["register", "run_hydraulic"]
+
+#: largest --noise: a standard deviation of ten times the peak is noise with no record in it
+MAX_NOISE = 10.0
 
 DESCRIPTION = """\
 Simulate step tests of a physical plant and write them as CSV files, one per
@@ -42,7 +46,15 @@ examples:
   kautztwin simulate hydraulic --records 30 --samples 900 --temperature 20:60 --out data
   kautztwin simulate hydraulic --amplitude 0.9 --noise 0 --seed 1 --out big --json
   kautztwin simulate hydraulic --temperature=-10:40 --out cold   (negative values need '=')
-  kautztwin approx data/record_01.csv --time t --response y --kind step --optimize-poles 3
+  kautztwin approx data/record_01.csv --time t --response y --input u --kind step \\
+      --optimize-poles 3
+
+The records are steps of A (--amplitude, default 0.5), not unit steps: give
+approx the input column (--input u) or the height (--amplitude 0.5) and it
+reports the model per unit command.  Its DC gain (about 197 at 20 degC) is the
+step's static gain, summary.json's steady_speed / A; summary.json's dc_gain
+(156) is the slope of the drive linearised at u0 = A, which differs because
+the valve's orifice flow is nonlinear.
 """
 
 
@@ -79,7 +91,7 @@ def register(subparsers: argparse._SubParsersAction, common: argparse.ArgumentPa
     h.add_argument(
         "--noise", type=float, default=0.01, metavar="FRACTION",
         help="sensor noise: standard deviation as a fraction of each record's peak "
-        "(0.01 = 1%%; default: %(default)s)",
+        f"(0.01 = 1%%; 0 to {MAX_NOISE:g}; default: %(default)s)",
     )
     h.add_argument("--seed", type=int, default=0, help="seed of the noise (default: %(default)s)")
     h.add_argument("--out", required=True, metavar="DIR",
@@ -126,10 +138,19 @@ def _check_flags(args: argparse.Namespace) -> tuple[float, float, float]:
         raise CLIError(f"--t-end must be a positive number of seconds, got {t_end:g}")
     if not (math.isfinite(args.amplitude) and args.amplitude != 0):
         raise CLIError(f"--amplitude must be a nonzero number, got {args.amplitude:g}")
-    if not (math.isfinite(args.noise) and args.noise >= 0):
-        raise CLIError(f"--noise must be a fraction >= 0, got {args.noise:g}")
+    if not (math.isfinite(args.noise) and 0 <= args.noise <= MAX_NOISE):
+        raise CLIError(
+            f"--noise must be a fraction >= 0 and at most {MAX_NOISE:g} (a standard deviation "
+            f"of {MAX_NOISE:g} times the record's peak), got {args.noise:g}"
+        )
     if args.seed < 0:
         raise CLIError(f"--seed must be >= 0, got {args.seed}")
+    from ..simulators.hydraulic.steptests import step_tests_nbytes
+
+    check_memory(
+        step_tests_nbytes(args.records, args.samples),
+        f"--records {args.records} x --samples {args.samples}",
+    )
     return lo, hi, t_end
 
 
@@ -169,6 +190,9 @@ def run_hydraulic(args: argparse.Namespace) -> int:
         args.records, args.samples, (lo, hi), t_end=t_end, amplitude=args.amplitude,
         noise=args.noise, random_state=args.seed,
     )
+    for name in ("t", "u", "y", "y_true"):  # never write a file with non-finite numbers
+        if not np.all(np.isfinite(getattr(records, name))):
+            raise CLIError(f"the simulated {name} is not finite; lower --noise or --amplitude")
     drive = HydraulicServoDrive(records.parameters)
     width = max(2, len(str(records.n_records)))
     files: list[str] = []

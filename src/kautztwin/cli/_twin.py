@@ -1,4 +1,4 @@
-"""``kautztwin twin run``: run the digital twin on a plant and write its report."""
+"""``kautztwin twin run`` / ``twin serve``: the digital twin offline, or as a long-lived service."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from typing import Any
 
 from ._common import CLIError, print_json
 
-__all__ = ["register", "run"]
+__all__ = ["register", "run", "serve"]
 
 DESCRIPTION = """\
 Run the digital twin of a plant: an open-loop identification phase (binary
@@ -55,7 +55,7 @@ closed-loop phase, or time:value pairs (seconds from the start of the run).
 
 
 def register(subparsers: argparse._SubParsersAction, common: argparse.ArgumentParser) -> None:
-    """Add the ``twin`` command (with its ``run`` action) to the command-line parser.
+    """Add the ``twin`` command (with its ``run`` and ``serve`` actions) to the parser.
 
     Parameters
     ----------
@@ -120,6 +120,121 @@ def register(subparsers: argparse._SubParsersAction, common: argparse.ArgumentPa
     r.add_argument("--json", action="store_true",
                    help="print metrics.json to stdout instead of the one-line summary")
     r.set_defaults(run=run)
+    _register_serve(actions, common)
+
+
+SERVE_DESCRIPTION = """\
+Run the digital twin as a long-lived service on the wall clock: the same
+modules as 'twin run' (identification, Kautz MPC, updates, history), attached
+to a plant that runs on its own - an in-process simulator paced in real time
+(--speed X times faster) or an OPC UA server (a PLC, or 'kautztwin plant
+serve').  Runs until SIGTERM / Ctrl-C (or --duration wall-clock seconds),
+then commits what is pending, writes DIR/metrics.json and DIR/report.md and
+exits 0; the same command resumes the run from DIR/history.sqlite.  Events
+(model versions, re-identifications, outages, reconnects) are logged on
+stderr as key=value pairs (or JSON lines).
+
+Every key of the TOML file (--config) is also a flag --SECTION-KEY
+(e.g. --mpc-u-max 0.65, --plant-drift-events 30,50); flags override the file.
+See docs/service.md for the reference and examples/twin.toml.
+"""
+
+SERVE_EPILOG = """\
+examples:
+  kautztwin twin serve --plant hydraulic --speed 10 --out runs/live
+  kautztwin plant serve --plant hydraulic --speed 10 --drift 0.4@30,50 &
+  kautztwin twin serve --plant opc.tcp://127.0.0.1:4840 --out runs/opcua
+  kautztwin twin serve --config examples/twin.toml --out runs/svc --logging-format json
+"""
+
+
+def _register_serve(actions: argparse._SubParsersAction,
+                    common: argparse.ArgumentParser) -> None:
+    from ..service.config import SCHEMA, SHORT_FLAGS
+
+    s = actions.add_parser(
+        "serve", parents=[common], allow_abbrev=False,
+        help="run the twin as a long-lived service (until SIGTERM), resumable",
+        description=SERVE_DESCRIPTION, epilog=SERVE_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    s.add_argument("--config", metavar="FILE", help="TOML service configuration")
+    s.add_argument("--plant", metavar="PLANT",
+                   help="hydraulic, tclab (in-process simulators) or opc.tcp://HOST:PORT")
+    short = {v: k for k, v in SHORT_FLAGS.items()}
+    for flag, (section, key) in SHORT_FLAGS.items():
+        s.add_argument(flag, dest=f"cfg__{section}__{key}", metavar="VALUE",
+                       help=f"same as --{section}-{key.replace('_', '-')}")
+    group = s.add_argument_group("configuration keys (override the file)")
+    for section, keys in SCHEMA.items():
+        for key, (_, _default, text) in keys.items():
+            extra = f" (short: {short[(section, key)]})" if (section, key) in short else ""
+            group.add_argument(f"--{section}-{key.replace('_', '-')}",
+                               dest=f"cfg__{section}__{key}", metavar="VALUE",
+                               help=f"{text}{extra}")
+    s.set_defaults(run=serve)
+
+
+def serve(args: argparse.Namespace) -> int:
+    """Run the ``twin serve`` command.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        Parsed flags.
+
+    Returns
+    -------
+    int
+        0 after a clean stop (signal, ``--duration`` or the end of the horizon).
+
+    Raises
+    ------
+    KautzTwinError
+        On a bad configuration (one line, exit 2) or an unreachable plant.
+    """
+    import signal
+    import threading
+
+    from ..service import TwinService, configure_logging, load_service_config
+
+    overrides: dict[str, Any] = {}
+    if args.plant is not None:
+        text = args.plant.strip()
+        if text.lower().startswith("opc.tcp://"):
+            overrides.update({"plant.kind": "opcua", "plant.endpoint": text})
+        else:
+            overrides["plant.kind"] = text
+    for name, value in vars(args).items():
+        if name.startswith("cfg__") and value is not None:
+            _, section, key = name.split("__")
+            overrides[f"{section}.{key}"] = value
+    config = load_service_config(args.config, overrides)
+    log = config.values["logging"]
+    configure_logging(log["level"], config.log_file, log["format"])
+    import logging
+
+    logging.getLogger("asyncua").setLevel(logging.ERROR)
+    config.out.mkdir(parents=True, exist_ok=True)
+    service = TwinService(config)
+    previous: dict[int, Any] = {}
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            previous[sig] = signal.signal(sig, lambda *_: service.request_stop())
+    try:
+        service.build()
+        s = service.run()
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    resumed = f" (resumed after {s['resume_k']})" if s["resumed"] else ""
+    fit = s.get("sync_fit_mean")
+    fit_text = "n/a" if fit is None else f"{fit:.1f} %"
+    sys.stdout.write(
+        f"twin serve {config.plant['kind']}: {s['n_samples']} samples{resumed}, "
+        f"{s['reason']}; model version {s['version']}, sync fit mean {fit_text}, "
+        f"{s['outages']} outages, {s['reconnects']} reconnects; store {config.history_path}\n")
+    return 0
 
 
 def _parse_drift(text: str | None, duration: float) -> tuple[float, tuple[float, ...]]:

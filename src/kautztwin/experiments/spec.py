@@ -42,10 +42,15 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from .._validation import check_memory
 from ..datasets import ParametricSystem, paper_system
 from ..exceptions import DataError
 
 __all__ = ["TrainSpec"]
+
+#: float64 arrays of (records x samples) that training holds at once: the noisy and the
+#: noise-free responses, and the network's scaled copy of the inputs with its gradients
+_ARRAYS_PER_RECORD = 4
 
 _SCHEMA: dict[str, dict[str, type | tuple[type, ...]]] = {
     "system": {
@@ -257,6 +262,11 @@ class TrainSpec:
             raise DataError(f"training.n_records must be at least 10, got {n_records}")
         if n_test < 1:
             raise DataError(f"training.n_test must be positive, got {n_test}")
+        check_memory(
+            8.0 * _ARRAYS_PER_RECORD * float(n_records + n_test) * float(n_samples),
+            f"training.n_records = {n_records} (+ training.n_test = {n_test}) records of "
+            f"grid.n_samples = {n_samples} samples",
+        )
         max_epochs = tr.get("max_epochs")
         if max_epochs is not None and max_epochs < 1:
             raise DataError(f"training.max_epochs must be positive, got {max_epochs}")

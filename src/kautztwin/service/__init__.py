@@ -1,25 +1,40 @@
-"""Long-running services around the twin: a simulated plant behind an OPC UA server.
+"""Long-running services around the twin: an OPC UA plant server, and the twin as a service.
+
+:class:`TwinService` (``kautztwin twin serve``) runs the twin on the wall
+clock against a plant link until it is stopped, resumable from its store;
+:func:`load_service_config` reads its TOML configuration.
 
 :class:`PlantServer` runs any :class:`~kautztwin.twin.Plant` (the hydraulic
 drive, the TCLab emulator...) in real or scaled time behind an OPC UA server
 (``asyncua``, install ``kautztwin[service]``), with the address space
 documented in ``docs/service.md``.  It is the stand-in for a PLC in tests,
 demos and docs; the twin's OPC UA link talks to it and to a real PLC with the
-same node ids alike.
+same node ids alike.  :class:`MQTTPlantServer` serves the same plants over MQTT
+(``paho-mqtt``, a broker of your own), stepped by the same code
+(:mod:`~kautztwin.service.pacing`).
 """
 
 from __future__ import annotations
 
+from .config import ServiceConfig, load_service_config
+from .mqtt_plant import MQTTPlantServer
 from .plant_server import (
     DEFAULT_ENDPOINT,
     Channel,
     PlantServer,
     default_channels,
 )
+from .twin_service import TwinService, configure_logging, load_estimator
 
 __all__ = [
     "DEFAULT_ENDPOINT",
     "Channel",
+    "MQTTPlantServer",
     "PlantServer",
+    "ServiceConfig",
+    "TwinService",
+    "configure_logging",
     "default_channels",
+    "load_estimator",
+    "load_service_config",
 ]

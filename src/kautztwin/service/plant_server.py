@@ -36,9 +36,8 @@ properties ``EngineeringUnits`` (``EUInformation``, UNECE unit codes) and
 ``EURange`` (``Range``) as ``HasProperty`` children (node ids
 ``<plant>.y.EngineeringUnits``, ``<plant>.y.EURange``...).
 
-Size: over 600 lines (the class over 400) because the address space, the real-time stepping
-loop, the write guard and the fault hooks (freeze, stop, restart on the same port) act on one
-server state from one asyncio thread; about half of the lines are documentation.
+The transport-independent stepping (pacing, catch-up after a restart, freeze) is
+:class:`~kautztwin.service.pacing.PacedPlant`, shared with the MQTT plant server.
 """
 
 from __future__ import annotations
@@ -51,18 +50,16 @@ import logging
 import math
 import socket
 import threading
-import time
-from collections import deque
 from collections.abc import Mapping
-from dataclasses import dataclass
-from datetime import UTC, datetime, timedelta
-from typing import TYPE_CHECKING, Any, NamedTuple
+from datetime import UTC, datetime
+from typing import TYPE_CHECKING, Any
 
-from ..exceptions import DataError, KautzTwinError
+from ..exceptions import KautzTwinError
 from ..twin.physical.opcua import NAMESPACE_URI, parse_endpoint
+from .pacing import Channel, PacedPlant, ServedSample, default_channels, unece_unit_id
 
 if TYPE_CHECKING:  # pragma: no cover - typing only
-    from ..twin import Plant, Reading
+    from ..twin import Plant
 
 __all__ = [
     "DEFAULT_ENDPOINT",
@@ -70,6 +67,7 @@ __all__ = [
     "PlantServer",
     "ServedSample",
     "default_channels",
+    "unece_unit_id",
 ]
 
 _logger = logging.getLogger(__name__)
@@ -92,127 +90,6 @@ def _import_asyncua() -> Any:
             "the OPC UA plant server needs asyncua: pip install 'kautztwin[service]'"
         ) from exc
     return asyncua
-
-
-def unece_unit_id(code: str) -> int:
-    """The ``UnitId`` of a UNECE Recommendation 20 unit code (OPC UA Part 8, 5.6.3).
-
-    Parameters
-    ----------
-    code : str
-        Common code of up to 3 ASCII characters, e.g. ``'CEL'`` (°C), ``'2A'`` (rad/s).
-
-    Returns
-    -------
-    int
-        The characters packed into an integer, most significant first.
-
-    Raises
-    ------
-    DataError
-        If the code is empty, longer than 3 characters or not ASCII.
-
-    Examples
-    --------
-    >>> from kautztwin.service.plant_server import unece_unit_id
-    >>> unece_unit_id("CEL"), unece_unit_id("2A")
-    (4408652, 12865)
-    """
-    if not (1 <= len(code) <= 3) or not code.isascii():
-        raise DataError(f"a UNECE unit code has 1 to 3 ASCII characters, got {code!r}")
-    out = 0
-    for ch in code:
-        out = (out << 8) | ord(ch)
-    return out
-
-
-@dataclass(frozen=True)
-class Channel:
-    """Engineering description of one plant variable (an OPC UA ``AnalogItem``).
-
-    Parameters
-    ----------
-    unit : str
-        Display name of the unit (``'rad/s'``, ``'°C'``, ``'%'``, ``''``).
-    low, high : float
-        ``EURange``: the range the value normally lies in; for an input, the
-        limits outside which writes are rejected.
-    unece : str, optional
-        UNECE common code of the unit (``'2A'``, ``'CEL'``, ``'P1'``, ``'C62'``);
-        ``UnitId`` is -1 when omitted.
-    description : str, default=''
-        What the variable is.
-
-    Raises
-    ------
-    DataError
-        If the range is not ``low < high`` (infinite ends are allowed).
-    """
-
-    unit: str
-    low: float
-    high: float
-    unece: str | None = None
-    description: str = ""
-
-    def __post_init__(self) -> None:
-        low, high = float(self.low), float(self.high)
-        if math.isnan(low) or math.isnan(high) or not low < high:
-            raise DataError(f"a channel range needs low < high, got ({low}, {high})")
-        object.__setattr__(self, "low", low)
-        object.__setattr__(self, "high", high)
-        if self.unece is not None:
-            unece_unit_id(self.unece)
-
-    def contains(self, value: float) -> bool:
-        """Whether ``value`` is a finite number inside ``[low, high]``.
-
-        Parameters
-        ----------
-        value : float
-
-        Returns
-        -------
-        bool
-        """
-        return math.isfinite(value) and self.low <= value <= self.high
-
-
-def default_channels(plant: Plant) -> tuple[Channel, Channel]:
-    """Input and output channels of a plant, from its name and limits.
-
-    The hydraulic drive (name ``'hydraulic'``): valve command (dimensionless,
-    the plant's input limits) and shaft speed in rad/s (range ± the drive's
-    no-load speed).  The TCLab (``'tclab'``): heater power in % and the
-    heater temperature in °C (0 to 100).  Any other plant: the input limits
-    and an unbounded output without unit.
-
-    Parameters
-    ----------
-    plant : Plant
-        The plant.
-
-    Returns
-    -------
-    tuple of Channel
-        ``(input, output)``.
-    """
-    lo, hi = (float(v) for v in plant.input_limits)
-    name = str(getattr(plant, "name", "")).lower()
-    if name.startswith("hydraulic"):
-        drive = getattr(plant, "drive", None)
-        w = float(getattr(drive, "no_load_speed", math.inf))
-        return (
-            Channel("", lo, hi, "C62", "servo-valve command (fraction of full spool stroke)"),
-            Channel("rad/s", -w, w, "2A", "hydraulic motor shaft speed"),
-        )
-    if name.startswith("tclab"):
-        return (
-            Channel("%", lo, hi, "P1", "heater power"),
-            Channel("°C", 0.0, 100.0, "CEL", "heater temperature"),
-        )
-    return Channel("", lo, hi, None, "plant input"), Channel("", -math.inf, math.inf, None,
-                                                              "plant output")
 
 
 def _format_endpoint(host: str, port: int) -> str:
@@ -246,31 +123,6 @@ def _check_bindable(host: str, port: int) -> None:
             ) from None
 
 
-class ServedSample(NamedTuple):
-    """One sample the server's plant produced (see :attr:`PlantServer.history`).
-
-    Attributes
-    ----------
-    k : int
-        Sample index.
-    t : float
-        Plant time, s.
-    u : float
-        Input applied over the period that ended at ``t`` (NaN at ``k = 0``).
-    y : float
-        Output.
-    published : bool
-        Whether the sample was written to the address space (not while
-        frozen, stopped or catching up).
-    """
-
-    k: int
-    t: float
-    u: float
-    y: float
-    published: bool
-
-
 class _Users:
     """asyncua user manager: username/password pairs, role ``User``."""
 
@@ -286,7 +138,7 @@ class _Users:
         return None
 
 
-class PlantServer:
+class PlantServer(PacedPlant):
     """Serve a simulated plant over OPC UA in real or scaled time.
 
     Every ``dt / speed`` wall-clock seconds the server steps the plant with
@@ -374,48 +226,15 @@ class PlantServer:
         history: int = 100_000,
         start_timeout: float = 60.0,
     ) -> None:
-        self.plant = plant
         self._host, self._port = parse_endpoint(endpoint)
-        try:
-            speed = float(speed)
-        except (TypeError, ValueError):
-            raise DataError(f"speed must be a positive number, got {speed!r}") from None
-        if not (math.isfinite(speed) and speed > 0):
-            raise DataError(f"speed must be a positive number, got {speed}")
-        self.speed = speed
-        self.dt = float(plant.dt)
+        super().__init__(plant, speed=speed, object_name=object_name,
+                         input_channel=input_channel, output_channel=output_channel,
+                         initial_input=initial_input, history=history)
         self.namespace = str(namespace)
-        self.object_name = str(object_name if object_name is not None else plant.name)
-        if not self.object_name or any(c in self.object_name for c in ";= "):
-            raise DataError(f"object name must be a non-empty word, got {self.object_name!r}")
-        din, dout = default_channels(plant)
-        self.input_channel = input_channel if input_channel is not None else din
-        self.output_channel = output_channel if output_channel is not None else dout
-        plo, phi = (float(v) for v in plant.input_limits)
-        if self.input_channel.low < plo or self.input_channel.high > phi:
-            raise DataError(
-                f"input range ({self.input_channel.low:g}, {self.input_channel.high:g}) must lie "
-                f"inside the plant's input limits ({plo:g}, {phi:g})"
-            )
-        if initial_input is None:
-            initial_input = getattr(plant, "initial_command", None)
-        if initial_input is None or not self.input_channel.contains(float(initial_input)):
-            initial_input = 0.5 * (self.input_channel.low + self.input_channel.high)
-        self.initial_input = float(initial_input)
         self.users = dict(users) if users else None
-        self.history: deque[ServedSample] = deque(maxlen=int(history))
         self.start_timeout = float(start_timeout)
-        self.restarts = 0
-        self._u = self.initial_input
-        self._k = -1  # no sample yet: the first start resets the plant
-        self._last: ServedSample | None = None
-        self._origin_mono = 0.0
-        self._origin_wall = datetime.now(UTC)
-        self._frozen = False
-        self._status = "stopped"
         self._thread: threading.Thread | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
-        self._stop_event: asyncio.Event | None = None
         self._lock = threading.Lock()
 
     # ------------------------------------------------------------------ properties
@@ -435,29 +254,9 @@ class PlantServer:
         return self._thread is not None and self._thread.is_alive()
 
     @property
-    def frozen(self) -> bool:
-        """Whether publishing is frozen (see :meth:`freeze`)."""
-        return self._frozen
-
-    @property
     def status(self) -> str:
         """Value of the status variable (``'stopped'`` while the server is down)."""
         return self._status
-
-    @property
-    def k(self) -> int:
-        """Index of the last sample the plant produced (-1 before the first start)."""
-        return self._k
-
-    @property
-    def origin_time(self) -> float:
-        """Wall-clock time (POSIX s) of plant time 0: source time = origin + t / speed."""
-        return self._origin_wall.timestamp()
-
-    @property
-    def last_input(self) -> float:
-        """The input the plant holds now (the last accepted write)."""
-        return self._u
 
     @property
     def node_ids(self) -> dict[str, str]:
@@ -541,14 +340,6 @@ class PlantServer:
         self.stop()
         self.plant.close()
 
-    def freeze(self) -> None:
-        """Stop publishing outputs; the plant keeps running and writes are still accepted."""
-        self._frozen = True
-
-    def unfreeze(self) -> None:
-        """Publish outputs again (from the next sample on)."""
-        self._frozen = False
-
     def __enter__(self) -> PlantServer:
         return self.start()
 
@@ -594,21 +385,15 @@ class PlantServer:
         self._ids = {key: ua.NodeId(sid, idx) for key, sid in self.node_ids.items()}
         await self._build(server, idx, ua)
         self._install_write_check(server, ua)
-        if self._k < 0:
-            reading = self.plant.reset()
-            self._origin_mono = time.monotonic()
-            self._origin_wall = datetime.now(UTC)
-            self._record(reading, math.nan, publish=True)
-        else:
-            self.restarts += 1
-        await self._publish_last(ua)
+        self._begin_run()
+        await self._publish_last()
         await server.start()
         try:
             self._set_status("running")
             ready.set()
             if self._k >= 0 and self.restarts:
-                await self._catch_up(ua)
-            await self._tick_loop(ua)
+                await self._catch_up()
+            await self._tick_loop()
         finally:
             with contextlib.suppress(Exception):
                 await server.stop()
@@ -704,16 +489,6 @@ class PlantServer:
         service.write = write
 
     # ------------------------------------------------------------------ stepping
-    def _source_time(self, t: float) -> datetime:
-        return self._origin_wall + timedelta(seconds=t / self.speed)
-
-    def _record(self, reading: Reading, u: float, publish: bool) -> ServedSample:
-        self._k = int(round(reading.t / self.dt)) if self._k >= 0 else 0
-        sample = ServedSample(self._k, float(reading.t), float(u), float(reading.y), publish)
-        self._last = sample
-        self.history.append(sample)
-        return sample
-
     def _read_input(self) -> float:
         dv = self._server.read_attribute_value(self._ids["u"])
         try:
@@ -731,7 +506,9 @@ class PlantServer:
                           ServerTimestamp=now)
         await self._server.write_attribute_value(self._ids[key], dv)
 
-    async def _publish(self, sample: ServedSample, ua: Any) -> None:
+    async def _publish(self, sample: ServedSample) -> None:
+        from asyncua import ua
+
         D = ua.VariantType.Double
         src = self._source_time(sample.t)
         await self._write("u_applied", sample.u, D, ua, src)
@@ -739,9 +516,9 @@ class PlantServer:
         await self._write("t", sample.t, D, ua, src)
         await self._write("y", sample.y, D, ua, src)  # last: a client reading y finds k, t set
 
-    async def _publish_last(self, ua: Any) -> None:
+    async def _publish_last(self) -> None:
         if self._last is not None:
-            await self._publish(self._last, ua)
+            await self._publish(self._last)
 
     def _set_status(self, status: str) -> None:
         self._status = status
@@ -753,55 +530,3 @@ class PlantServer:
         loop = asyncio.get_running_loop()
         loop.create_task(self._write("status", status, ua.VariantType.String, ua))
 
-    def _step(self) -> ServedSample | None:
-        u = self._read_input()
-        try:
-            reading = self.plant.step(u)
-        except Exception as exc:  # a plant that fails: report, stop stepping
-            _logger.exception("plant step failed")
-            self._set_status(f"fault: {' '.join(str(exc).split()) or type(exc).__name__}")
-            return None
-        return self._record(reading, u, publish=not self._frozen)
-
-    async def _catch_up(self, ua: Any) -> None:
-        """After a restart, run the plant silently up to the wall clock."""
-        target = int((time.monotonic() - self._origin_mono) * self.speed / self.dt)
-        if target <= self._k:
-            return
-        self._set_status("catching-up")
-        while self._k < target and not self._stop_event.is_set():
-            u = self._read_input()
-            try:
-                reading = self.plant.step(u)
-            except Exception as exc:
-                self._set_status(f"fault: {' '.join(str(exc).split())}")
-                return
-            self._record(reading, u, publish=False)
-            if self._k % 200 == 0:
-                await asyncio.sleep(0)  # let clients connect meanwhile
-        self._set_status("running")
-
-    async def _tick_loop(self, ua: Any) -> None:
-        period = self.dt / self.speed
-        stop = self._stop_event
-        was_frozen = False
-        while not stop.is_set():
-            due = self._origin_mono + (self._k + 1) * period
-            delay = due - time.monotonic()
-            if delay > 0:
-                with contextlib.suppress(TimeoutError):
-                    await asyncio.wait_for(stop.wait(), delay)
-                if stop.is_set():
-                    break
-            if self._status.startswith("fault"):
-                await stop.wait()
-                break
-            frozen = self._frozen
-            if frozen != was_frozen:
-                self._set_status("frozen" if frozen else "running")
-                was_frozen = frozen
-            sample = self._step()
-            if sample is not None and sample.published:
-                await self._publish(sample, ua)
-            elif delay <= 0:
-                await asyncio.sleep(0)

@@ -5,7 +5,9 @@ from __future__ import annotations
 import numpy as np
 
 from ..._validation import (
+    check_finite,
     check_int,
+    check_memory,
     check_number,
 )
 from ...exceptions import DataError
@@ -13,7 +15,22 @@ from .drive import HydraulicServoDrive
 from .parameters import DEFAULT_T_END, NOMINAL_COMMAND, HydraulicParameters, _check_temperature
 from .results import StepTestRecords
 
-__all__ = ["simulate_step_tests"]
+__all__ = ["simulate_step_tests", "step_tests_nbytes"]
+
+
+def step_tests_nbytes(n_records: int, n_samples: int) -> float:
+    """Bytes the arrays of :func:`simulate_step_tests` take: ``u``, ``y``, ``y_true`` and ``t``.
+
+    Parameters
+    ----------
+    n_records, n_samples : int
+
+    Returns
+    -------
+    float
+        ``8 * (3 * n_records * n_samples + n_samples)`` (a float, so it cannot overflow).
+    """
+    return 8.0 * (3.0 * float(n_records) * float(n_samples) + float(n_samples))
 
 
 # --------------------------------------------------------------------------- step tests
@@ -61,7 +78,9 @@ def simulate_step_tests(
     ------
     DataError
         On a non-positive count or length, a decreasing or out-of-range
-        temperature pair, a zero amplitude or a negative noise level.
+        temperature pair, a zero amplitude or a negative noise level; on records
+        that would not fit in memory (checked before anything is simulated), or
+        a noise level so large that the records overflow to inf.
 
     See Also
     --------
@@ -93,6 +112,10 @@ def simulate_step_tests(
     t_end = check_number(t_end, "t_end")
     if t_end <= 0:
         raise DataError(f"t_end must be > 0 s, got {t_end:g}")
+    check_memory(
+        step_tests_nbytes(n_records, n_samples),
+        f"{n_records} records x {n_samples} samples (u, y, y_true)",
+    )
     drive = HydraulicServoDrive(parameters if parameters is not None else HydraulicParameters())
     t = np.linspace(0.0, t_end, n_samples)
     temps = np.linspace(lo, hi, n_records)
@@ -100,9 +123,15 @@ def simulate_step_tests(
     u = np.empty((n_records, n_samples))
     y = np.empty_like(u)
     y_true = np.empty_like(u)
-    for k, T in enumerate(temps):
-        r = drive.step_response(t, amplitude, float(T), noise=noise, random_state=rng)
-        u[k], y[k], y_true[k] = r.u, r.y, r.y_true
+    with np.errstate(over="ignore", invalid="ignore"):  # an overflow is refused below
+        for k, T in enumerate(temps):
+            r = drive.step_response(t, amplitude, float(T), noise=noise, random_state=rng)
+            u[k], y[k], y_true[k] = r.u, r.y, r.y_true
+    try:
+        check_finite(y, "the simulated records y")
+    except DataError as exc:
+        raise DataError(f"{exc}: noise = {noise:g} of the peak overflows; use a smaller noise "
+                        "level") from None
     return StepTestRecords(
         t=t, u=u, y=y, y_true=y_true, temperature=temps, amplitude=float(amplitude),
         noise=float(noise), parameters=drive.parameters,

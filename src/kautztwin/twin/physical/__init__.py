@@ -15,7 +15,9 @@ sampling period and reads again.  The links:
 * :class:`ReplayPlant` (:mod:`.replay`): a recorded CSV file of ``t, u, y``
   played back;
 * :class:`OPCUAPlant` (:mod:`.opcua`): a plant behind an OPC UA server (a PLC, or
-  :class:`kautztwin.service.PlantServer`), with reconnection and stale-data flags.
+  :class:`kautztwin.service.PlantServer`), with reconnection and stale-data flags;
+* :class:`MQTTPlant` (:mod:`.mqtt`): JSON samples and inputs over an MQTT broker
+  (``paho-mqtt``, imported only when the link connects), with the same fault behaviour.
 
 :func:`make_plant` (:mod:`.factory`) builds a link from a twin configuration.
 
@@ -30,6 +32,7 @@ from __future__ import annotations
 from .base import Plant, PlantRun, Reading, run_open_loop
 from .clock import Clock
 from .factory import make_plant
+from .mqtt import DEFAULT_BROKER, MQTTPlant, default_topics, parse_broker
 from .opcua import NAMESPACE_URI, LinkError, OPCUAPlant, Outage, parse_endpoint
 from .replay import ReplayExhaustedError, ReplayInputWarning, ReplayPlant
 from .sanitize import SampleFlag, SampleSanitizer, SanitizedSample
@@ -37,10 +40,12 @@ from .simulated import HydraulicPlant, TemperatureSchedule, temperature_for_pole
 from .tclab import TCLabPlant
 
 __all__ = [
+    "DEFAULT_BROKER",
     "NAMESPACE_URI",
     "Clock",
     "HydraulicPlant",
     "LinkError",
+    "MQTTPlant",
     "OPCUAPlant",
     "Outage",
     "Plant",
@@ -54,7 +59,9 @@ __all__ = [
     "SanitizedSample",
     "TCLabPlant",
     "TemperatureSchedule",
+    "default_topics",
     "make_plant",
+    "parse_broker",
     "parse_endpoint",
     "run_open_loop",
     "temperature_for_pole_ratio",
