@@ -85,12 +85,18 @@ def register(subparsers: argparse._SubParsersAction, common: argparse.ArgumentPa
 
 def _target(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
     """Keyword arguments of ``pole_sensitivity`` for the target, and its description."""
-    if args.data is None and args.kind == "impulse":
+    if args.data is None and args.kind == "impulse" and args.amplitude is None \
+            and args.input is None:
         from ..data import reference_system
 
         return {"system": reference_system()}, "built-in reference system, exact ISE"
     record = load_record(args)
-    return {"t": record.t, "h": record.y, "kind": args.kind}, record.source
+    source = record.source
+    if record.amplitude != 1:
+        source += (
+            f", per unit input (divided by {record.amplitude:g} from {record.amplitude_source})"
+        )
+    return {"t": record.t, "h": record.y, "kind": args.kind}, source
 
 
 def run(args: argparse.Namespace) -> int:

@@ -28,21 +28,16 @@ Inputs outside :attr:`~MQTTPlant.input_limits` are refused with a one-line
 :class:`~kautztwin.exceptions.DataError` before they are published.  ``paho-mqtt``
 is imported when the link connects (install ``kautztwin[service]``).
 
-Size: over 600 lines (the class over 400) because, as in :mod:`.opcua`, the
-connection callbacks, the sample queue ordered by source timestamp and the
-synchronous Plant interface share one state guarded by one lock; about half of
-the lines are documentation.  The queue and reading logic mirrors
-:class:`~.opcua.OPCUAPlant` and could move to a shared base.
+The sample queue, the readings, stale detection, the outage log and the
+counters are shared with :class:`~.opcua.OPCUAPlant` in :class:`~.link.SampleLink`.
 """
 
 from __future__ import annotations
 
-import heapq
 import itertools
 import json
 import logging
 import math
-import threading
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -51,7 +46,7 @@ from urllib.parse import urlsplit
 
 from ...exceptions import DataError
 from .base import Reading
-from .opcua import LinkError, Outage, _positive
+from .link import LinkError, SampleLink, _positive
 
 __all__ = ["DEFAULT_BROKER", "MQTTPlant", "default_topics", "parse_broker"]
 
@@ -202,7 +197,7 @@ def decode_sample(payload: bytes,
             _number(data.get("k")))
 
 
-class MQTTPlant:
+class MQTTPlant(SampleLink):
     """A plant behind an MQTT broker (a gateway, or :class:`kautztwin.service.MQTTPlantServer`).
 
     Parameters
@@ -314,83 +309,18 @@ class MQTTPlant:
                 raise DataError(f"topics.{key} must be a topic without wildcards, got {value!r}")
             spec[key] = value.strip()
         self.topics = spec
-        self._dt = None if dt is None else _positive(dt, "dt")
-        self._speed = None if speed is None else _positive(speed, "speed")
-        self._limits: tuple[float, float] | None = None
-        if input_limits is not None:
-            try:
-                lo, hi = (float(v) for v in input_limits)
-            except (TypeError, ValueError):
-                raise DataError(f"input_limits must be (low, high), got {input_limits!r}") from None
-            if not lo < hi:
-                raise DataError(f"input_limits must have low < high, got ({lo}, {hi})")
-            self._limits = (lo, hi)
-        self.stale_periods = _positive(stale_periods, "stale_periods")
-        self.connect_timeout = _positive(connect_timeout, "connect_timeout")
-        self.request_timeout = _positive(request_timeout, "request_timeout")
-        self.reconnect_delay = _positive(reconnect_delay, "reconnect_delay")
-        self.reconnect_max_delay = max(self.reconnect_delay,
-                                       _positive(reconnect_max_delay, "reconnect_max_delay"))
+        self._init_config(dt, speed, input_limits, stale_periods)
+        self._init_link(connect_timeout, request_timeout, reconnect_delay, reconnect_max_delay)
         self.keepalive = max(1, int(keepalive))
         self.username, self.password, self.client_id = username, password, client_id
-        self.outages: list[Outage] = []
-        self.counters = dict.fromkeys(
-            ("samples", "dropouts", "stale", "link_down", "late", "out_of_order", "duplicates",
-             "rejected_writes", "failed_writes", "reconnects"), 0)
         self.plant_status = ""
         self._meta: dict[str, Any] | None = None
-        self._cond = threading.Condition()
-        self._heap: list[_Sample] = []
-        self._seq = itertools.count()
-        self._client: Any = None
-        self._fatal: BaseException | None = None
-        self._last_error = ""
-        self._link_up = False
-        self._connections = 0
         self._acks: dict[int, tuple[str, float]] = {}
         self._write_seq = itertools.count(1)
-        self._newest_ts = -math.inf
-        self._last_fresh = time.monotonic()
-        self._origin_ts: float | None = None
         self._origin_t = math.nan
-        self._last_ts = -math.inf
-        self._last_t = 0.0
-        self._degraded_at: float | None = None
-        self._stale_outage: Outage | None = None
-        self._link_outage: Outage | None = None
-        self._k = 0
-        self._u = math.nan
 
     # ------------------------------------------------------------------ configuration
-    @property
-    def dt(self) -> float:
-        """Sampling period, plant seconds (from the meta topic on first use when not given)."""
-        if self._dt is None:
-            self._need_meta()
-        assert self._dt is not None
-        return self._dt
-
-    @property
-    def speed(self) -> float:
-        """Plant seconds per wall-clock second of the timestamps."""
-        if self._speed is None:
-            self._need_meta()
-        return 1.0 if self._speed is None else self._speed
-
-    @property
-    def input_limits(self) -> tuple[float, float]:
-        """``(low, high)`` input bounds; inputs outside are refused."""
-        if self._limits is None:
-            self._need_meta()
-        assert self._limits is not None
-        return self._limits
-
-    @property
-    def link_up(self) -> bool:
-        """Whether the client is connected to the broker and subscribed now."""
-        return self._link_up
-
-    def _need_meta(self) -> None:
+    def _need_config(self) -> None:
         self.connect()
         deadline = time.monotonic() + self.connect_timeout
         with self._cond:
@@ -479,17 +409,8 @@ class MQTTPlant:
             return
         for key in ("y", "ack", "meta", "status"):  # made again on every connection
             client.subscribe(self.topics[key], qos=1)
-        now = time.time()
         with self._cond:
-            self._link_up = True
-            self._connections += 1
-            if self._connections > 1:
-                self.counters["reconnects"] += 1
-            if self._link_outage is not None:
-                self._link_outage.end = now
-                self._link_outage = None
-            self._last_fresh = time.monotonic()
-            self._cond.notify_all()
+            self._mark_up()
         _logger.info("%s: connected to %s", self.name, self.broker)
 
     def _on_disconnect(self, client: Any, userdata: Any, flags: Any, reason: Any,
@@ -499,9 +420,7 @@ class MQTTPlant:
             self._cond.notify_all()
             if not was_up or self._closing:
                 return
-            outage = Outage("link", time.time(), None, f"connection lost: {reason}", self._last_t)
-            self._link_outage = outage
-            self.outages.append(outage)
+            self._mark_down(f"connection lost: {reason}")
         _logger.warning("%s: link to %s down: %s", self.name, self.broker, reason)
 
     _closing = False
@@ -532,37 +451,14 @@ class MQTTPlant:
     def _on_sample(self, payload: bytes) -> None:
         now_wall, now = time.time(), time.monotonic()
         ts, y, t_src, status, k_src = decode_sample(payload, now_wall)
-        sample = _Sample(ts, next(self._seq), y, status, t_src, k_src, now, now_wall - ts)
-        with self._cond:
-            if ts > self._newest_ts:
-                self._newest_ts = ts
-                self._last_fresh = now
-            heapq.heappush(self._heap, sample)
-            self._cond.notify_all()
+        self._queue(_Sample(ts, next(self._seq), y, status, t_src, k_src, now, now_wall - ts), now)
 
     # ------------------------------------------------------------------ readings
     def _plant_time(self, s: _Sample) -> float:
         assert self._origin_ts is not None
         if math.isfinite(s.t_src) and math.isfinite(self._origin_t):
             return s.t_src - self._origin_t
-        t = (s.ts - self._origin_ts) * self.speed
-        dt = self.dt
-        k = round(t / dt)
-        return k * dt if abs(t - k * dt) <= 0.1 * dt else t
-
-    def _pop(self) -> tuple[_Sample | None, int]:
-        """Next sample newer than the last one returned (call with the lock held)."""
-        dropped = 0
-        while self._heap:
-            s = heapq.heappop(self._heap)
-            if s.ts > self._last_ts:
-                return s, dropped
-            if s.ts < self._last_ts:
-                dropped += 1
-                self.counters["out_of_order"] += 1
-            else:
-                self.counters["duplicates"] += 1
-        return None, dropped
+        return self._grid_time(s.ts)
 
     def reset(self) -> Reading:
         """Connect (if needed) and return the newest sample as the reading at ``t = 0``.
@@ -582,30 +478,14 @@ class MQTTPlant:
         """
         self.connect()
         _ = self.dt, self.input_limits, self.speed
-        deadline = time.monotonic() + self.connect_timeout
         with self._cond:
-            while not self._heap:
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    raise LinkError(f"no sample on {self.topics['y']!r} from {self.broker} "
-                                    f"within {self.connect_timeout:g} s")
-                self._cond.wait(left)
-            newest = max(self._heap)
-            self._heap.clear()
-            self._origin_ts = newest.ts
+            newest = self._start_clock(f"no sample on {self.topics['y']!r} from {self.broker}")
             self._origin_t = newest.t_src
-            self._last_ts = newest.ts
-            self._last_t = 0.0
-            self._k = 0
-            self._u = math.nan
-            self._degraded_at = None
             return self._real_reading(newest, 0, math.nan, "", None, None)
 
     def _real_reading(self, s: _Sample, dropped: int, u_req: float, write: str,
                       written_at: float | None, seq: int | None) -> Reading:
-        t = self._plant_time(s)
         late = written_at is not None and s.arrival < written_at
-        dropout = not math.isfinite(s.value)
         verdict, from_k = self._acks.get(seq, ("ok", math.nan)) if seq is not None else ("", 0.0)
         if seq is not None and self._acks and seq not in self._acks:
             late = True  # a plant that acknowledges inputs has not taken this one yet
@@ -615,20 +495,7 @@ class MQTTPlant:
             self.counters["rejected_writes"] += 1
         elif write == "ok":
             self._u = u_req
-        self._last_ts = s.ts
-        self._last_t = t
-        self._degraded_at = None
-        if self._stale_outage is not None:
-            self._stale_outage.end = time.time()
-            self._stale_outage = None
-        self.counters["dropouts" if dropout else "samples"] += 1
-        if late:
-            self.counters["late"] += 1
-        meta = dict(k=self._k, u=self._u, u_requested=u_req, write=write,
-                    link="up" if self._link_up else "down", dropout=dropout, stale=False,
-                    late=late, out_of_order=dropped, status=s.status, source_time=s.ts,
-                    latency=s.latency, queued=len(self._heap))
-        return Reading(t, math.nan if dropout else s.value, meta)
+        return self._sample_reading(s, self._plant_time(s), dropped, u_req, write, late)
 
     def _write(self, value: float, seq: int) -> str:
         client = self._client
@@ -661,60 +528,20 @@ class MQTTPlant:
         DataError
             If ``u`` is not a finite number inside :attr:`input_limits` (nothing is published).
         """
-        try:
-            value = float(u)  # type: ignore[arg-type]
-        except (TypeError, ValueError):
-            raise DataError(f"{self.name}: u must be a number, got {u!r}") from None
-        lo, hi = self.input_limits
-        if not (math.isfinite(value) and lo <= value <= hi):
-            raise DataError(
-                f"{self.name}: input {value:g} is outside the input limits [{lo:g}, {hi:g}]; "
-                "refused before it was published"
-            )
-        if self._origin_ts is None:
-            raise DataError(f"{self.name}: call reset() before step()")
+        value = self._check_input(u, "published")
         seq = next(self._write_seq)
         written_at = time.monotonic()
         write = self._write(value, seq)
         if write.startswith("failed"):
             self.counters["failed_writes"] += 1
-        self._k += 1
-        period = self.dt / self.speed
-        with self._cond:
-            while True:
-                sample, dropped = self._pop()
-                if sample is not None:
-                    return self._real_reading(sample, dropped, value, write, written_at,
-                                              seq if write == "ok" else None)
-                now = time.monotonic()
-                if self._degraded_at is not None:
-                    deadline = self._degraded_at + period
-                else:
-                    deadline = self._last_fresh + self.stale_periods * period
-                if now >= deadline:
-                    at = deadline if now - deadline < period else now  # no backlog of NaNs
-                    return self._missing_reading(value, write, dropped, at)
-                self._cond.wait(deadline - now)
+        return self._next_reading(value, write, lambda sample, dropped: self._real_reading(
+            sample, dropped, value, write, written_at, seq if write == "ok" else None))
 
     def _missing_reading(self, u_req: float, write: str, dropped: int, at: float) -> Reading:
         """A NaN reading: no sample in time (call with the lock held)."""
         if write == "ok":
             self._u = u_req
-        link = "up" if self._link_up else "down"
-        stale = link == "up"
-        self._degraded_at = at
-        self._last_t += self.dt
-        self.counters["dropouts"] += 1
-        self.counters["stale" if stale else "link_down"] += 1
-        if stale and self._stale_outage is None:
-            self._stale_outage = Outage(
-                "stale", time.time(), None,
-                f"no new sample for {self.stale_periods:g} sample periods", self._last_t - self.dt)
-            self.outages.append(self._stale_outage)
-        meta = dict(k=self._k, u=self._u, u_requested=u_req, write=write, link=link,
-                    dropout=True, stale=stale, late=False, out_of_order=dropped, status="",
-                    source_time=math.nan, latency=math.nan, queued=0)
-        return Reading(self._last_t, math.nan, meta)
+        return super()._missing_reading(u_req, write, dropped, at)
 
     def close(self) -> None:
         """Disconnect and stop the background client (idempotent)."""
@@ -731,9 +558,6 @@ class MQTTPlant:
 
     def __enter__(self) -> MQTTPlant:
         return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
     def __repr__(self) -> str:
         state = "up" if self._link_up else "down"

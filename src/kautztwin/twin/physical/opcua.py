@@ -24,17 +24,19 @@ What real links do, and what the link does about it:
 Inputs outside :attr:`~OPCUAPlant.input_limits` are refused with a
 :class:`~kautztwin.exceptions.DataError` before they go out.
 
-Size: over 600 lines (the class over 400) because the session (connect, subscribe,
-reconnect with backoff), the sample queue ordered by source timestamp and the synchronous
-Plant interface share one state guarded by one lock; about half of the lines are documentation.
+The sample queue, the readings, stale detection, the outage log and the
+counters are shared with :class:`~.mqtt.MQTTPlant` in :class:`~.link.SampleLink`.
+
+Size: over 600 lines (the class over 400) because the OPC UA session (connect, resolve and
+check the nodes, read the metadata, subscribe, reconnect with backoff, write with its status)
+runs in its own thread and loop beside the synchronous Plant interface; about half of the
+lines are documentation.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
-import heapq
-import itertools
 import logging
 import math
 import threading
@@ -44,8 +46,9 @@ from dataclasses import dataclass
 from typing import Any
 from urllib.parse import urlsplit
 
-from ...exceptions import DataError, KautzTwinError
+from ...exceptions import DataError
 from .base import Reading
+from .link import LinkError, Outage, SampleLink, _positive
 
 __all__ = ["NAMESPACE_URI", "LinkError", "OPCUAPlant", "Outage", "parse_endpoint"]
 
@@ -103,41 +106,6 @@ _IDENTITY_ERRORS = ("BadUserAccessDenied", "BadIdentityTokenRejected", "BadIdent
 _VARIANTS_INT = ("SByte", "Byte", "Int16", "UInt16", "Int32", "UInt32", "Int64", "UInt64")
 
 
-class LinkError(KautzTwinError, ConnectionError):
-    """The OPC UA server could not be reached (or refused the session) in time."""
-
-
-@dataclass
-class Outage:
-    """One interruption of the plant data.
-
-    Parameters
-    ----------
-    kind : {'link', 'stale'}
-        ``'link'``: the connection was lost; ``'stale'``: connected, but no new
-        sample arrived for ``stale_periods`` sample periods.
-    start : float
-        Wall-clock time the outage was detected (POSIX seconds).
-    end : float or None
-        Wall-clock time data flowed again; ``None`` while it lasts.
-    reason : str
-        What was seen (one line).
-    t : float
-        Plant time of the last reading before the outage, s.
-    """
-
-    kind: str
-    start: float
-    end: float | None
-    reason: str
-    t: float = math.nan
-
-    @property
-    def duration(self) -> float:
-        """Seconds from start to end (NaN while the outage lasts)."""
-        return math.nan if self.end is None else self.end - self.start
-
-
 @dataclass(frozen=True, order=True)
 class _Sample:
     ts: float  # source timestamp, POSIX s
@@ -170,17 +138,7 @@ def _scale_pair(spec: Any, key: str) -> tuple[float, float]:
     return scale, offset
 
 
-def _positive(value: Any, name: str) -> float:
-    try:
-        out = float(value)
-    except (TypeError, ValueError):
-        raise DataError(f"{name} must be a positive number, got {value!r}") from None
-    if not (math.isfinite(out) and out > 0):
-        raise DataError(f"{name} must be a positive number, got {out}")
-    return out
-
-
-class OPCUAPlant:
+class OPCUAPlant(SampleLink):
     """A plant behind an OPC UA server (a PLC, or :class:`kautztwin.service.PlantServer`).
 
     Parameters
@@ -318,54 +276,17 @@ class OPCUAPlant:
             if key not in ("u", "y"):
                 raise DataError(f"scaling: unknown variable {key!r}; use u or y")
         self._scale = {k: _scale_pair(scaling.get(k, (1.0, 0.0)), k) for k in ("u", "y")}
-        self._dt = None if dt is None else _positive(dt, "dt")
-        self._speed = None if speed is None else _positive(speed, "speed")
-        self._limits: tuple[float, float] | None = None
-        if input_limits is not None:
-            try:
-                lo, hi = (float(v) for v in input_limits)
-            except (TypeError, ValueError):
-                raise DataError(f"input_limits must be (low, high), got {input_limits!r}") from None
-            if not lo < hi:
-                raise DataError(f"input_limits must have low < high, got ({lo}, {hi})")
-            self._limits = (lo, hi)
-        self.stale_periods = _positive(stale_periods, "stale_periods")
+        self._init_config(dt, speed, input_limits, stale_periods)
         self._pub = None if publishing_interval is None else _positive(
             publishing_interval, "publishing_interval")
-        self.connect_timeout = _positive(connect_timeout, "connect_timeout")
-        self.request_timeout = _positive(request_timeout, "request_timeout")
-        self.reconnect_delay = _positive(reconnect_delay, "reconnect_delay")
-        self.reconnect_max_delay = max(self.reconnect_delay,
-                                       _positive(reconnect_max_delay, "reconnect_max_delay"))
+        self._init_link(connect_timeout, request_timeout, reconnect_delay, reconnect_max_delay)
         self.username, self.password, self.security = username, password, security
-        self.outages: list[Outage] = []
-        self.counters = dict.fromkeys(
-            ("samples", "dropouts", "stale", "link_down", "late", "out_of_order", "duplicates",
-             "rejected_writes", "failed_writes", "reconnects"), 0)
-        self._cond = threading.Condition()
-        self._heap: list[_Sample] = []
-        self._seq = itertools.count()
         self._thread: threading.Thread | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._closing: asyncio.Event | None = None
         self._ready = threading.Event()
-        self._fatal: BaseException | None = None
-        self._last_error = ""
-        self._client: Any = None
         self._u_node: Any = None
         self._u_variant: Any = None
-        self._link_up = False
-        self._connections = 0
-        self._newest_ts = -math.inf
-        self._last_fresh = time.monotonic()
-        self._origin_ts: float | None = None
-        self._last_ts = -math.inf
-        self._last_t = 0.0
-        self._degraded_at: float | None = None  # monotonic time of the last NaN reading
-        self._stale_outage: Outage | None = None
-        self._link_outage: Outage | None = None
-        self._k = 0
-        self._u = math.nan
 
     # ------------------------------------------------------------------ configuration
     def _parse_node_id(self, key: str, text: str) -> Any:
@@ -382,34 +303,6 @@ class OPCUAPlant:
                 f"{' '.join(str(exc).split())}"
             ) from None
         return ("id", nid)
-
-    @property
-    def dt(self) -> float:
-        """Sampling period, plant seconds (read from the server on first use when not given)."""
-        if self._dt is None:
-            self.connect()
-        assert self._dt is not None
-        return self._dt
-
-    @property
-    def speed(self) -> float:
-        """Plant seconds per wall-clock second of the server's timestamps."""
-        if self._speed is None:
-            self.connect()
-        return 1.0 if self._speed is None else self._speed
-
-    @property
-    def input_limits(self) -> tuple[float, float]:
-        """``(low, high)`` input bounds in engineering units; writes outside are refused."""
-        if self._limits is None:
-            self.connect()
-        assert self._limits is not None
-        return self._limits
-
-    @property
-    def link_up(self) -> bool:
-        """Whether the session and its subscription are up now."""
-        return self._link_up
 
     # ------------------------------------------------------------------ connection
     def connect(self) -> OPCUAPlant:
@@ -622,18 +515,9 @@ class OPCUAPlant:
         return raw * scale + offset
 
     def _on_up(self, client: Any) -> None:
-        now = time.time()
         with self._cond:
             self._client = client
-            self._link_up = True
-            self._connections += 1
-            if self._connections > 1:
-                self.counters["reconnects"] += 1
-            if self._link_outage is not None:
-                self._link_outage.end = now
-                self._link_outage = None
-            self._last_fresh = time.monotonic()
-            self._cond.notify_all()
+            self._mark_up()
         self._ready.set()
         _logger.info("%s: connected to %s", self.name, self.endpoint)
 
@@ -645,9 +529,7 @@ class OPCUAPlant:
             self._cond.notify_all()
             if reason is None:  # closed on purpose
                 return
-            outage = Outage("link", time.time(), None, reason, self._last_t)
-            self._link_outage = outage
-            self.outages.append(outage)
+            self._mark_down(reason)
             self._cond.notify_all()
         _logger.warning("%s: link to %s down: %s", self.name, self.endpoint, reason)
 
@@ -679,13 +561,7 @@ class OPCUAPlant:
             value = math.nan
         if not good:
             value = math.nan
-        sample = _Sample(ts, next(self._seq), value, status, good, now, now_wall - ts)
-        with self._cond:
-            if ts > self._newest_ts:
-                self._newest_ts = ts
-                self._last_fresh = now
-            heapq.heappush(self._heap, sample)
-            self._cond.notify_all()
+        self._queue(_Sample(ts, next(self._seq), value, status, good, now, now_wall - ts), now)
 
     def status_change_notification(self, status: Any) -> None:
         """asyncua callback: a subscription status change (logged; the supervisor reconnects).
@@ -697,27 +573,6 @@ class OPCUAPlant:
         _logger.info("%s: subscription status %s", self.name, status)
 
     # ------------------------------------------------------------------ readings
-    def _plant_time(self, ts: float) -> float:
-        assert self._origin_ts is not None
-        t = (ts - self._origin_ts) * self.speed
-        dt = self.dt
-        k = round(t / dt)
-        return k * dt if abs(t - k * dt) <= 0.1 * dt else t
-
-    def _pop(self) -> tuple[_Sample | None, int]:
-        """Next sample newer than the last one returned (call with the lock held)."""
-        dropped = 0
-        while self._heap:
-            s = heapq.heappop(self._heap)
-            if s.ts > self._last_ts:
-                return s, dropped
-            if s.ts < self._last_ts:
-                dropped += 1
-                self.counters["out_of_order"] += 1
-            else:
-                self.counters["duplicates"] += 1
-        return None, dropped
-
     def reset(self) -> Reading:
         """Connect (if needed) and return the current sample as the reading at ``t = 0``.
 
@@ -735,46 +590,14 @@ class OPCUAPlant:
             On bad node ids or missing metadata (see :meth:`connect`).
         """
         self.connect()
-        deadline = time.monotonic() + self.connect_timeout
         with self._cond:
-            while not self._heap:
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    raise LinkError(f"no sample of {self.nodes['y']!r} from {self.endpoint} "
-                                    f"within {self.connect_timeout:g} s")
-                self._cond.wait(left)
-            newest = max(self._heap)
-            self._heap.clear()
-            self._origin_ts = newest.ts
-            self._last_ts = newest.ts
-            self._last_t = 0.0
-            self._k = 0
-            self._u = math.nan
-            self._degraded_at = None
+            newest = self._start_clock(f"no sample of {self.nodes['y']!r} from {self.endpoint}")
             return self._real_reading(newest, 0, math.nan, "", written_at=None)
 
     def _real_reading(self, s: _Sample, dropped: int, u_req: float, write: str,
                       written_at: float | None) -> Reading:
-        t = self._plant_time(s.ts)
         late = written_at is not None and s.arrival < written_at
-        dropout = not math.isfinite(s.value)
-        self._last_ts = s.ts
-        self._last_t = t
-        self._degraded_at = None
-        if self._stale_outage is not None:
-            self._stale_outage.end = time.time()
-            self._stale_outage = None
-        if dropout:
-            self.counters["dropouts"] += 1
-        else:
-            self.counters["samples"] += 1
-        if late:
-            self.counters["late"] += 1
-        meta = dict(k=self._k, u=self._u, u_requested=u_req, write=write, link="up"
-                    if self._link_up else "down", dropout=dropout, stale=False, late=late,
-                    out_of_order=dropped, status=s.status, source_time=s.ts, latency=s.latency,
-                    queued=len(self._heap))
-        return Reading(t, s.value if not dropout else math.nan, meta)
+        return self._sample_reading(s, self._grid_time(s.ts), dropped, u_req, write, late)
 
     def _write(self, raw: float) -> str:
         loop, node = self._loop, self._u_node
@@ -823,18 +646,7 @@ class OPCUAPlant:
         DataError
             If ``u`` is not a finite number inside :attr:`input_limits` (nothing is written).
         """
-        try:
-            value = float(u)  # type: ignore[arg-type]
-        except (TypeError, ValueError):
-            raise DataError(f"{self.name}: u must be a number, got {u!r}") from None
-        lo, hi = self.input_limits
-        if not (math.isfinite(value) and lo <= value <= hi):
-            raise DataError(
-                f"{self.name}: input {value:g} is outside the input limits [{lo:g}, {hi:g}]; "
-                "refused before it was written"
-            )
-        if self._origin_ts is None:
-            raise DataError(f"{self.name}: call reset() before step()")
+        value = self._check_input(u, "written")
         scale, offset = self._scale["u"]
         written_at = time.monotonic()
         write = self._write((value - offset) / scale)
@@ -844,40 +656,8 @@ class OPCUAPlant:
             self.counters["rejected_writes"] += 1
         elif write.startswith("failed"):
             self.counters["failed_writes"] += 1
-        self._k += 1
-        period = self.dt / self.speed
-        with self._cond:
-            while True:
-                sample, dropped = self._pop()
-                if sample is not None:
-                    return self._real_reading(sample, dropped, value, write, written_at)
-                now = time.monotonic()
-                if self._degraded_at is not None:
-                    deadline = self._degraded_at + period
-                else:
-                    deadline = self._last_fresh + self.stale_periods * period
-                if now >= deadline:
-                    at = deadline if now - deadline < period else now  # no backlog of NaNs
-                    return self._missing_reading(value, write, dropped, at)
-                self._cond.wait(deadline - now)
-
-    def _missing_reading(self, u_req: float, write: str, dropped: int, at: float) -> Reading:
-        """A NaN reading: no sample in time (call with the lock held)."""
-        link = "up" if self._link_up else "down"
-        stale = link == "up"
-        self._degraded_at = at
-        self._last_t += self.dt
-        self.counters["dropouts"] += 1
-        self.counters["stale" if stale else "link_down"] += 1
-        if stale and self._stale_outage is None:
-            self._stale_outage = Outage(
-                "stale", time.time(), None,
-                f"no new sample for {self.stale_periods:g} sample periods", self._last_t - self.dt)
-            self.outages.append(self._stale_outage)
-        meta = dict(k=self._k, u=self._u, u_requested=u_req, write=write, link=link,
-                    dropout=True, stale=stale, late=False, out_of_order=dropped, status="",
-                    source_time=math.nan, latency=math.nan, queued=0)
-        return Reading(self._last_t, math.nan, meta)
+        return self._next_reading(value, write, lambda sample, dropped: self._real_reading(
+            sample, dropped, value, write, written_at))
 
     def close(self) -> None:
         """Disconnect and stop the background link (idempotent)."""
@@ -892,9 +672,6 @@ class OPCUAPlant:
 
     def __enter__(self) -> OPCUAPlant:
         return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
     def __repr__(self) -> str:
         state = "up" if self._link_up else "down"
