@@ -7,11 +7,9 @@ import logging
 import math
 import time
 
+import asyncua  # noqa: F401  (a test extra: missing means a broken install)
 import numpy as np
 import pytest
-
-pytest.importorskip("asyncua")
-
 from asyncua import Client, ua  # noqa: E402
 
 from kautztwin.exceptions import DataError  # noqa: E402
@@ -69,6 +67,9 @@ def _source_k(server: PlantServer, reading: Reading) -> int:
 # --------------------------------------------------------------------------- address space
 def test_address_space_browse(hydraulic_server):
     server = hydraulic_server
+    deadline = time.monotonic() + 5.0
+    while server.k < 1 and time.monotonic() < deadline:  # a loaded host: the first tick
+        time.sleep(0.01)
 
     async def browse():
         async with Client(server.endpoint, timeout=5) as client:

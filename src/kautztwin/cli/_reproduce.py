@@ -36,24 +36,46 @@ def register(subparsers: argparse._SubParsersAction, common: argparse.ArgumentPa
     p.set_defaults(run=run)
 
 
+# rough wall-clock times on a 2-core machine (the first line of the command quotes them)
+PULSE_EVERY_S = 15.0  # seconds of silence before a "still working" line (not on a terminal)
+EXPECTED_S = {("simulation", False): 600.0, ("simulation", True): 40.0,
+              ("hydraulic", False): 600.0, ("hydraulic", True): 45.0}
+
+
 def run(args: argparse.Namespace) -> int:
-    """Run ``kautztwin reproduce``."""
-    def say(msg: str) -> None:
-        if not args.quiet:
-            sys.stderr.write(msg + "\n")
+    """Run ``kautztwin reproduce``.
 
+    Parameters
+    ----------
+    args : argparse.Namespace
+        Parsed flags.
+
+    Returns
+    -------
+    int
+        Exit status (0).
+    """
+    from ..experiments.progress import Pulse, about
+
+    expected = EXPECTED_S[(args.study, bool(args.quick))]
+    with Pulse(expected, every=PULSE_EVERY_S, enabled=not args.quiet) as pulse:
+        say = pulse.say
+        say(f"reproduce {args.study}{' --quick' if args.quick else ''}: {about(expected)} on "
+            "a 2-core machine" + ("" if args.quick else " (--quick: a smoke run in "
+                                  f"{about(EXPECTED_S[(args.study, True)])[6:]})"))
+        if args.study == "simulation":
+            from ..experiments.simulation import reproduce_simulation
+
+            m = reproduce_simulation(args.out, quick=args.quick, random_state=args.seed, log=say)
+        else:
+            from ..experiments.hydraulic import reproduce_hydraulic
+
+            m = reproduce_hydraulic(args.out, quick=args.quick, random_state=args.seed, log=say)
     if args.study == "simulation":
-        from ..experiments.simulation import reproduce_simulation
-
-        m = reproduce_simulation(args.out, quick=args.quick, random_state=args.seed, log=say)
         rows = [f"{name:<22}{s['fit_mean']:>9.2f} %{s['seconds_per_record']:>12.2e} s/record"
                 for name, s in m["methods"].items()]
         sys.stdout.write("method                 fit mean   time\n" + "\n".join(rows) + "\n")
-        sys.stdout.write(f"wrote {args.out}/metrics.json, report.md, figures\n")
-        return 0
-    from ..experiments.hydraulic import reproduce_hydraulic
-
-    m = reproduce_hydraulic(args.out, quick=args.quick, random_state=args.seed, log=say)
-    sys.stdout.write(f"identified model fit {m['identification']['fit_percent']:.2f} %\n")
+    else:
+        sys.stdout.write(f"identified model fit {m['identification']['fit_percent']:.2f} %\n")
     sys.stdout.write(f"wrote {args.out}/metrics.json, report.md, figures\n")
     return 0

@@ -44,7 +44,7 @@ EPILOG = """\
 examples:
   kautztwin sensitivity --poles "-1,-3,-0.5+1.9365j,-0.5-1.9365j" --out fig3.png
   kautztwin sensitivity --poles "-1.1,-0.8,-2.1" --grid 200 --span 0.1:4 --out maps.png --json
-  kautztwin sensitivity data.csv --time t --response y --kind step --poles "-1,-2" --out s.png
+  kautztwin sensitivity examples/measured.csv --time t --response h --poles "-1,-2" --out s.png
 """
 
 

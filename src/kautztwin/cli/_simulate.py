@@ -136,6 +136,11 @@ def _check_flags(args: argparse.Namespace) -> tuple[float, float, float]:
     t_end = DEFAULT_T_END if args.t_end is None else args.t_end
     if not (math.isfinite(t_end) and t_end > 0):
         raise CLIError(f"--t-end must be a positive number of seconds, got {t_end:g}")
+    if not (MIN_DT * (args.samples - 1) <= t_end <= MAX_T_END):
+        raise CLIError(
+            f"--t-end must lie between {MIN_DT * (args.samples - 1):g} s (a sampling interval "
+            f"of {MIN_DT:g} s with --samples {args.samples}) and {MAX_T_END:g} s, got {t_end:g}"
+        )
     if not (math.isfinite(args.amplitude) and args.amplitude != 0):
         raise CLIError(f"--amplitude must be a nonzero number, got {args.amplitude:g}")
     if not (math.isfinite(args.noise) and 0 <= args.noise <= MAX_NOISE):
@@ -180,16 +185,47 @@ def _fmt_poles(poles: Any) -> str:
     )
 
 
+MIN_DT = 1e-6  # s: finer sampling makes the ODE solver crawl (t_end 1e-300 never ends)
+MAX_T_END = 3600.0  # s: the drive settles in seconds; a longer record only adds cost
+SIM_S_PER_RECORD = 0.03
+WRITE_S_PER_RECORD = 0.02
+LONG_S = 10.0  # commands expected to take longer than this show progress on stderr
+
+
+class _NullStream:
+    """A stream that writes nothing and is not a terminal."""
+
+    def write(self, text: str) -> int:
+        return len(text)
+
+    def flush(self) -> None:
+        pass
+
+    def isatty(self) -> bool:
+        return False
+
+
 def run_hydraulic(args: argparse.Namespace) -> int:
     """Run ``kautztwin simulate hydraulic``; return the exit status."""
+    from ..experiments.progress import Counter, Pulse, about
     from ..simulators import HydraulicServoDrive, simulate_step_tests
 
     lo, hi, t_end = _check_flags(args)
     out = _prepare_dir(args.out)
-    records = simulate_step_tests(
-        args.records, args.samples, (lo, hi), t_end=t_end, amplitude=args.amplitude,
-        noise=args.noise, random_state=args.seed,
-    )
+    # rough cost on a 2-core machine: simulation and writing of one 900-sample record
+    per_record = (SIM_S_PER_RECORD + WRITE_S_PER_RECORD) * args.samples / 900
+    expected = args.records * per_record
+    talk = expected >= LONG_S
+    if talk:
+        sys.stderr.write(f"simulating {args.records} step tests x {args.samples} samples: "
+                         f"{about(expected)} on a 2-core machine\n")
+    with Pulse(args.records * SIM_S_PER_RECORD * args.samples / 900, every=15.0,
+               enabled=talk) as pulse:
+        pulse.stage = "simulating the step tests"
+        records = simulate_step_tests(
+            args.records, args.samples, (lo, hi), t_end=t_end, amplitude=args.amplitude,
+            noise=args.noise, random_state=args.seed,
+        )
     for name in ("t", "u", "y", "y_true"):  # never write a file with non-finite numbers
         if not np.all(np.isfinite(getattr(records, name))):
             raise CLIError(f"the simulated {name} is not finite; lower --noise or --amplitude")
@@ -199,6 +235,8 @@ def run_hydraulic(args: argparse.Namespace) -> int:
     poles: list[Any] = []
     gains: list[float] = []
     speeds: list[float] = []
+    counter = Counter(records.n_records, "records written",
+                      stream=sys.stderr if talk else _NullStream(), every=15.0)
     for k in range(records.n_records):
         name = f"record_{k + 1:0{width}d}.csv"
         T = float(records.temperature[k])
@@ -212,6 +250,8 @@ def run_hydraulic(args: argparse.Namespace) -> int:
         poles.append(lin.poles)
         gains.append(lin.dc_gain)
         speeds.append(lin.y0)
+        counter.update(1)
+    counter.close()
     summary: dict[str, Any] = {
         "plant": "hydraulic",
         "out": str(out),

@@ -1,4 +1,9 @@
-"""``kautztwin twin run`` / ``twin serve``: the digital twin offline, or as a long-lived service."""
+"""``kautztwin twin run`` / ``serve`` / ``history``: the twin offline, as a service, read back.
+
+``run`` also settles what the store's unfinished runs become (resumed with the same options,
+refused with other ones, ``abandoned`` with ``--new``); ``history`` reads a run back
+(:func:`kautztwin.twin.history.read_run`).
+"""
 
 from __future__ import annotations
 
@@ -10,9 +15,14 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from .._validation import check_memory
 from ._common import CLIError, print_json
 
-__all__ = ["register", "run", "serve"]
+__all__ = ["history", "register", "run", "serve"]
+
+# the run's per-sample arrays (15), their copy in the result, the excitation and the report's
+# temporaries: about 40 float64 values per sample
+_BYTES_PER_SAMPLE = 40 * 8
 
 DESCRIPTION = """\
 Run the digital twin of a plant: an open-loop identification phase (binary
@@ -47,7 +57,8 @@ examples:
   kautztwin twin run --plant hydraulic --setpoints 20:97,45:103,70:100 --drift 0.4@30,60 \\
       --speedup 5 --out runs/live
   kautztwin twin run --plant hydraulic --speedup 1 --no-background --out runs/sync
-  kautztwin twin run --plant replay:record.csv --out runs/replay
+  kautztwin twin run --plant hydraulic --quick --duration 30 --out runs/new --new
+  kautztwin twin history runs/quick --signals y,u,prediction --start 20 --end 25
 
 Set-points are in the plant's output units: values at equal intervals over the
 closed-loop phase, or time:value pairs (seconds from the start of the run).
@@ -108,8 +119,10 @@ def register(subparsers: argparse._SubParsersAction, common: argparse.ArgumentPa
                    "(default: %(default)s)")
     r.add_argument("--store", metavar="PATH",
                    help="SQLite history file (default: DIR/history.sqlite)")
-    r.add_argument("--no-resume", action="store_true",
-                   help="start a new run even if the store holds an unfinished one")
+    r.add_argument("--new", "--no-resume", dest="new", action="store_true",
+                   help="start a new run even if the store holds an unfinished one (that one "
+                   "is marked 'abandoned'); without it, an unfinished run started with the "
+                   "same options is resumed and one started with other options is an error")
     r.add_argument("--no-static", action="store_true",
                    help="skip the static-twin comparison (updates disabled)")
     r.add_argument("--no-plots", action="store_true", help="write no plots")
@@ -121,6 +134,7 @@ def register(subparsers: argparse._SubParsersAction, common: argparse.ArgumentPa
                    help="print metrics.json to stdout instead of the one-line summary")
     r.set_defaults(run=run)
     _register_serve(actions, common)
+    _register_history(actions, common)
 
 
 SERVE_DESCRIPTION = """\
@@ -160,7 +174,8 @@ def _register_serve(actions: argparse._SubParsersAction,
     )
     s.add_argument("--config", metavar="FILE", help="TOML service configuration")
     s.add_argument("--plant", metavar="PLANT",
-                   help="hydraulic, tclab (in-process simulators) or opc.tcp://HOST:PORT")
+                   help="hydraulic, tclab (in-process simulators), opc.tcp://HOST:PORT, "
+                        "mqtt://HOST:PORT or replay:FILE")
     short = {v: k for k, v in SHORT_FLAGS.items()}
     for flag, (section, key) in SHORT_FLAGS.items():
         s.add_argument(flag, dest=f"cfg__{section}__{key}", metavar="VALUE",
@@ -237,6 +252,121 @@ def serve(args: argparse.Namespace) -> int:
     return 0
 
 
+HISTORY_DESCRIPTION = """\
+Read a twin's store back (DIR/history.sqlite, or the file itself): the
+measured output y and input u, the twin's one-step prediction of each sample,
+the set-point in force and the sample flags, with the run's model versions
+and events.  Without --csv or --json it prints a summary and the samples of
+the window as a table.
+"""
+
+HISTORY_EPILOG = """\
+examples:
+  kautztwin twin run --plant hydraulic --quick --no-plots --out runs/quick
+  kautztwin twin history runs/quick --start 20 --end 20.1
+  kautztwin twin history runs/quick --signals y,prediction --csv runs/quick/window.csv
+  kautztwin twin history runs/quick --json --start 39.9
+"""
+
+
+def _register_history(actions: argparse._SubParsersAction,
+                      common: argparse.ArgumentParser) -> None:
+    h = actions.add_parser(
+        "history", parents=[common], allow_abbrev=False,
+        help="read a twin's store back (samples, predictions, versions, events)",
+        description=HISTORY_DESCRIPTION, epilog=HISTORY_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    h.add_argument("dir", metavar="DIR", help="the run's folder (or its history.sqlite)")
+    h.add_argument("--signals", metavar="LIST", default="y,u,prediction,setpoint",
+                   help="comma-separated, among y, u, prediction, setpoint, flags "
+                   "(default: %(default)s)")
+    h.add_argument("--start", type=float, metavar="T", help="first time, s")
+    h.add_argument("--end", type=float, metavar="T", help="last time, s")
+    h.add_argument("--run", dest="run_id", type=int, metavar="ID",
+                   help="run id (default: the last run)")
+    fmt = h.add_mutually_exclusive_group()
+    fmt.add_argument("--csv", metavar="FILE", help="write the samples to a CSV file")
+    fmt.add_argument("--json", action="store_true",
+                     help="print the run (samples, versions, events) as JSON")
+    h.set_defaults(run=history)
+
+
+def history(args: argparse.Namespace) -> int:
+    """Run the ``twin history`` command.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        Parsed flags.
+
+    Returns
+    -------
+    int
+        Exit status (0).
+
+    Raises
+    ------
+    CLIError
+        On a folder without a store, an unknown signal or run, or a bad window.
+    """
+    from ..twin.history import SIGNALS, SQLiteHistory, read_run
+
+    where = Path(args.dir)
+    store = where / "history.sqlite" if where.is_dir() else where
+    if not store.is_file():
+        raise CLIError(f"{args.dir}: no twin history here (expected {store}); "
+                       "'kautztwin twin run --out DIR' writes one")
+    signals = tuple(s.strip() for s in args.signals.split(",") if s.strip())
+    if not signals:
+        raise CLIError(f"--signals: give at least one of {', '.join(SIGNALS)}")
+    if args.csv and Path(args.csv).is_dir():
+        raise CLIError(f"--csv {args.csv}: is a directory")
+    h = SQLiteHistory(store)  # a file that is not SQLite: HistoryError, one line
+    try:
+        r = read_run(h, args.run_id, signals=signals, start=args.start, end=args.end)
+    finally:
+        h.close()
+    if args.json:
+        print_json(r.to_dict())
+        return 0
+    names = list(r.columns)
+    n = int(r.columns["t"].size)
+    if args.csv:
+        import csv
+
+        with open(args.csv, "w", newline="", encoding="utf-8") as f:
+            w = csv.writer(f)
+            w.writerow(names)
+            for i in range(n):
+                w.writerow(["" if isinstance(v, float) and not math.isfinite(v) else v
+                            for v in (r.columns[c][i].item() for c in names)])
+        sys.stdout.write(f"twin history run {r.run_id} ({r.status}): wrote {n} samples "
+                         f"({', '.join(names)}) to {args.csv}\n")
+        return 0
+    t = r.columns["t"]
+    span = f"t {t[0]:g}..{t[-1]:g} s" if n else "no samples in the window"
+    kinds: dict[str, int] = {}
+    for e in r.events:
+        kinds[e["kind"]] = kinds.get(e["kind"], 0) + 1
+    ev = ", ".join(f"{v} {k}" for k, v in kinds.items()) or "none"
+    lines = [f"run {r.run_id} ({r.status}) of {r.plant}: {r.n_committed} committed samples; "
+             f"{n} in the window ({span}); {len(r.versions)} model versions; events: {ev}"]
+    shown = range(n) if n <= 40 else [*range(20), -1, *range(n - 20, n)]
+    lines.append("  ".join(f"{c:>11}" for c in names))
+    for i in shown:
+        if i < 0:
+            lines.append(f"{'...':>11}  ({n - 40} more rows; --csv FILE writes them all)")
+            continue
+        cells = []
+        for c in names:
+            v = r.columns[c][i].item()
+            cells.append(f"{v:>11d}" if isinstance(v, int) else f"{v:>11.5g}")
+        lines.append("  ".join(cells))
+    sys.stdout.write("\n".join(lines) + "\n")
+    return 0
+
+
 def _parse_drift(text: str | None, duration: float) -> tuple[float, tuple[float, ...]]:
     if text is None:
         return 0.0, ()
@@ -300,6 +430,10 @@ def run(args: argparse.Namespace) -> int:
         duration = args.duration if args.duration is not None else math.inf
     drift, events = _parse_drift(args.drift, duration)
     plant = make_plant(args.plant, drift=drift, drift_events=events, seed=args.seed)
+    if math.isfinite(duration):  # the size is known before any work: refuse what cannot fit
+        n = duration / float(plant.dt)
+        check_memory(n * _BYTES_PER_SAMPLE,
+                     f"--duration {duration:g} s ({n:.3g} samples at dt {float(plant.dt):g} s)")
     config = TwinConfig.for_plant(
         plant, duration=args.duration, setpoints=args.setpoints, quick=args.quick,
         seed=args.seed, faults=args.faults, drift_events=events,
@@ -314,17 +448,22 @@ def run(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     if not store.parent.is_dir():
         raise CLIError(f"--store {store}: directory {str(store.parent)!r} does not exist")
+    stored_config = {"twin": config.to_dict(), "plant": plant.name}
+    _settle_unfinished(store, stored_config, new=args.new)
+    command = "kautztwin " + " ".join(shlex.quote(a) for a in sys.argv[1:]) if (
+        sys.argv and Path(sys.argv[0]).name in ("kautztwin", "__main__.py")) else None
     twin = DigitalTwin(plant, config, history=store, clock=clock, background=args.background)
     try:
         try:
-            result = twin.run(resume=not args.no_resume,
-                              progress=False if args.no_progress else None)
+            twin.start(resume=not args.new)
+            if twin.k == 0 and twin.run_id is not None:
+                twin.history.log_event(twin.run_id, "command", command or "(library call)",
+                                       payload={"argv": _argv(args)})
+            result = twin.run(progress=False if args.no_progress else None)
         except KeyboardInterrupt:
             if twin.run_id is not None:
                 twin.finish()  # commits what is pending; the run stays resumable
             raise
-        command = "kautztwin " + " ".join(shlex.quote(a) for a in sys.argv[1:]) if (
-            sys.argv and Path(sys.argv[0]).name in ("kautztwin", "__main__.py")) else None
         paths = write_report(result, out, command=command, plots=not args.no_plots)
     finally:
         twin.close()
@@ -335,6 +474,94 @@ def run(args: argparse.Namespace) -> int:
         return 0
     sys.stdout.write(_summary(metrics, out, len(paths) - 2) + "\n")
     return 0
+
+
+_KEPT = ("plant", "duration", "setpoints", "drift", "faults", "quick", "seed", "no_static",
+         "store", "out")
+
+
+def _argv(args: argparse.Namespace) -> dict[str, Any]:
+    """The options of a ``twin run`` as given (stored with the run, for messages)."""
+    return {k: getattr(args, k) for k in _KEPT if getattr(args, k, None) not in (None, False)}
+
+
+def _command_line(argv: dict[str, Any]) -> str:
+    """``kautztwin twin run ...`` from the stored options of a run."""
+    words = ["kautztwin", "twin", "run"]
+    for key in sorted(argv, key=lambda k: _KEPT.index(k) if k in _KEPT else len(_KEPT)):
+        value = argv[key]
+        value = f"{value:g}" if isinstance(value, float) else value
+        flag = "--" + key.replace("_", "-")
+        if value is True:
+            words.append(flag)
+        elif not (key == "seed" and value == 0):
+            words += [flag, shlex.quote(str(value))]
+    return " ".join(words)
+
+
+def _config_diff(old: dict[str, Any], new: dict[str, Any]) -> list[str]:
+    """``name old, now new`` for the settings that differ (at most two)."""
+    a, b = dict(old.get("twin", {})), dict(new.get("twin", {}))
+    a["plant"], b["plant"] = old.get("plant"), new.get("plant")
+    diff = []
+    for key in sorted(set(a) | set(b)):
+        if a.get(key) != b.get(key):
+            x, y = (json.dumps(v, separators=(",", ":")) for v in (a.get(key), b.get(key)))
+            x, y = (v if len(v) <= 24 else v[:21] + "..." for v in (x, y))
+            diff.append(f"{key} {x}, now {y}")
+    return diff[:2]
+
+
+def _settle_unfinished(store: Path, config: dict[str, Any], *, new: bool) -> None:
+    """Resume, abandon or refuse: what to do with the store's unfinished runs.
+
+    An unfinished run started with the same options is resumed (nothing to do
+    here); with ``new`` every unfinished run is marked ``'abandoned'``;
+    otherwise an unfinished run started with other options is an error that
+    says how to resume it or start over.
+    """
+    if not store.is_file():
+        return
+    from ..twin.history import SQLiteHistory
+
+    try:
+        history = SQLiteHistory(store)
+    except Exception as exc:  # a file that is not a twin store
+        raise CLIError(f"--store {store}: not a readable twin history ({exc})") from None
+    try:
+        unfinished = [r for r in history.runs() if r.status == "running"]
+        if new:
+            for info in unfinished:
+                history.log_event(info.run_id, "abandoned",
+                                  "abandoned: a new run was started with --new")
+                history.finish_run(info.run_id, "abandoned")
+            return
+        if not unfinished or any(r.config == config for r in unfinished):
+            return
+        last = unfinished[-1]
+        n = history.measurements(last.run_id).k.size
+        total = int(round(last.config.get("twin", {}).get("duration", 0)
+                          / max(last.config.get("twin", {}).get("dt", 1.0), 1e-12)))
+        started = [e.payload for e in history.events(last.run_id, "command")]
+    finally:
+        history.close()
+    argv = started[0].get("argv") if started and isinstance(started[0], dict) else None
+    how = (f"resume it with '{_command_line(argv)}'" if isinstance(argv, dict) and argv
+           else "resume it with the options it was started with")
+    diff = "; ".join(_config_diff(last.config, config))
+    raise CLIError(
+        f"{store} holds an unfinished run (run {last.run_id}, {n} of {total} samples) started "
+        f"with other options ({diff}): {how}, or add --new to start over (the old run is "
+        "marked 'abandoned')"
+    )
+
+
+def _fit_note(*fits: Any) -> str:
+    """A short explanation when a printed fit is negative (empty otherwise)."""
+    if any(f is not None and math.isfinite(f) and f < 0 for f in fits):
+        return (" (a fit below 0 % means the prediction is further from the output than the "
+                "output's own mean)")
+    return ""
 
 
 def _f(x: Any, unit: str = "", digits: int = 1) -> str:
@@ -351,6 +578,10 @@ def _summary(m: dict[str, Any], out: Path, n_plots: int) -> str:
     if m["drift_events_s"]:
         parts.append(f"min {_f(m['sync_fit_min_after_recovery'], ' %')} outside "
                      f"{m['recovery_window_s']:g} s recovery windows")
+    note = _fit_note(m.get("sync_fit_mean"), m.get("static_twin_sync_fit_mean"),
+                     m.get("sync_fit_min_after_recovery") if m["drift_events_s"] else None)
+    if note:
+        parts[-1] += note
     parts.append(f"{m['reidentifications']} re-identifications")
     if m.get("tracking_iae") is not None:
         parts.append(f"tracking IAE {_f(m['tracking_iae'], '', 2)}, "

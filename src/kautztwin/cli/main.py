@@ -37,11 +37,13 @@ EPILOG = """\
 examples:
   kautztwin basis --poles "-1.1,-0.8,-2.1" --out fig2.png
   kautztwin approx --poles "-1,-3,-0.5+1.9365j,-0.5-1.9365j"
-  kautztwin approx data.csv --time t --response y --kind step --optimize-poles 4 --json
+  kautztwin approx examples/measured.csv --time t --response h --optimize-poles 4 --json
   kautztwin sensitivity --poles "-1,-3,-0.5+-1.9365j" --out fig3.png
-  kautztwin identify run.csv --time Time --input Q1 --output T1 --kind step --order 2
+  kautztwin identify data/tclab_step_tests/step-test-data.csv --time Time --input Q1 \\
+      --output T1 --kind step --order 2
   kautztwin reproduce simulation --quick --out sim
   kautztwin twin run --plant hydraulic --duration 90 --drift 0.4 --out twin
+  kautztwin twin history twin --start 42 --end 42.1
 
 exit status: 0 success, 1 unexpected failure, 2 bad input or usage.
 Run 'kautztwin COMMAND --help' for the flags of a command.

@@ -12,6 +12,10 @@ demos and docs; the twin's OPC UA link talks to it and to a real PLC with the
 same node ids alike.  :class:`MQTTPlantServer` serves the same plants over MQTT
 (``paho-mqtt``, a broker of your own), stepped by the same code
 (:mod:`~kautztwin.service.pacing`).
+
+``twin serve --http`` adds the twin's HTTP API and live dashboard
+(:mod:`~kautztwin.service.api`, FastAPI, imported only then) and
+:mod:`~kautztwin.service.client` is its Python client.
 """
 
 from __future__ import annotations

@@ -1,18 +1,26 @@
 """Configuration of ``kautztwin twin serve``: a TOML file, overridden key by key by flags.
 
 The file has the sections ``[plant]``, ``[model]``, ``[estimator]``, ``[mpc]``,
-``[history]``, ``[logging]`` and ``[service]`` (the reference is in
+``[history]``, ``[logging]``, ``[service]`` and ``[http]`` (the reference is in
 ``docs/service.md``; ``examples/twin.toml`` is a complete example).  Every key
 is also a command-line flag ``--SECTION-KEY`` (``--mpc-u-max 0.65``); a few
 have short forms (``--plant``, ``--speed``, ``--drift``, ``--out``,
 ``--duration``, ``--store``, ``--estimator``, ``--seed``, ``--log-level``).
 An unknown section or key, a value of the wrong type or a missing file is a
 one-line :class:`~kautztwin.exceptions.DataError` naming the entry.
+
+``plant.kind`` picks the link: ``hydraulic`` / ``tclab`` (in-process
+simulators), ``opcua`` (``plant.endpoint``), ``mqtt`` (``plant.broker``,
+``plant.topic``) or ``replay`` (``plant.file``, ``plant.columns``); an
+``opc.tcp://`` or ``mqtt://`` URL, or ``replay:FILE``, as the kind implies
+the kind and its address (``--plant mqtt://127.0.0.1:1883``).
 """
 
 from __future__ import annotations
 
+import ipaddress
 import math
+import os
 import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -21,26 +29,39 @@ from typing import Any
 
 from ..exceptions import DataError
 
-__all__ = ["SCHEMA", "ServiceConfig", "load_service_config", "parse_value"]
+__all__ = ["SCHEMA", "ServiceConfig", "load_service_config", "parse_bind", "parse_value"]
 
 #: ``{section: {key: (type, default, help)}}``; types: float, int, bool, str,
 #: 'floats' (a list of numbers), 'table' (a table of strings), 'limits' (two numbers)
 SCHEMA: dict[str, dict[str, tuple[Any, Any, str]]] = {
     "plant": {
-        "kind": (str, "hydraulic", "hydraulic, tclab (in-process simulators) or opcua"),
+        "kind": (str, "hydraulic", "hydraulic, tclab (in-process simulators), opcua, mqtt "
+                 "or replay"),
         "endpoint": (str, None, "OPC UA server URL opc.tcp://HOST:PORT (kind = opcua)"),
-        "object": (str, "hydraulic", "OPC UA: object name of the default node ids OBJECT.u..."),
+        "broker": (str, None, "MQTT broker URL mqtt://HOST:PORT (kind = mqtt; default "
+                   "mqtt://127.0.0.1:1883)"),
+        "topic": (str, None, "MQTT: topic prefix (default kautztwin/OBJECT)"),
+        "topics": ("table", None, "MQTT: topics by role (y, u, ack, meta, status)"),
+        "dt": (float, None, "MQTT: sampling period, plant s (default: the retained meta topic)"),
+        "file": (str, None, "replay: the recorded CSV file"),
+        "columns": ("table", None, "replay: column names by role t, u, y (default t, u, y)"),
+        "object": (str, "hydraulic", "OPC UA / MQTT: object name of the default node ids "
+                   "OBJECT.u... and topic prefix kautztwin/OBJECT"),
         "nodes": ("table", None, "OPC UA: node ids by role (u, y, dt, speed, status)"),
         "namespace": (str, None, "OPC UA: namespace URI of bare string node ids"),
         "time_node": (str, None, "OPC UA: node with the plant's own time (default OBJECT.t), "
                       "to place drift_events on the twin's clock"),
-        "input_limits": ("limits", None, "OPC UA: (low, high) input bounds (default: EURange)"),
-        "username": (str, None, "OPC UA user name"),
-        "password": (str, None, "OPC UA password"),
+        "input_limits": ("limits", None, "OPC UA / MQTT: (low, high) input bounds (default: "
+                         "EURange / the meta topic)"),
+        "username": (str, None, "OPC UA / MQTT user name"),
+        "password": (str, None, "OPC UA / MQTT password"),
         "security": (str, None, "OPC UA security string Policy,Mode,cert,key"),
         "connect_timeout": (float, 10.0, "seconds to reach the plant before giving up"),
         "stale_periods": (float, 3.0, "sample periods without data that make a dropout"),
-        "speed": (float, 1.0, "simulators: plant seconds per wall-clock second"),
+        "on_outage": (str, "hold", "input while the link is down or its data stale: hold (send "
+                      "nothing: the plant holds its last input) or safe (send safe_input)"),
+        "safe_input": (float, None, "the input of on_outage = safe"),
+        "speed": (float, 1.0, "simulators and replay: plant seconds per wall-clock second"),
         "drift": (float, 0.0, "hydraulic simulator: relative slowing of the dominant pole"),
         "drift_events": ("floats", None, "start times of the drift steps, plant seconds"),
         "noise": (float, None, "simulators: sensor noise (default: the plant's)"),
@@ -93,6 +114,13 @@ SCHEMA: dict[str, dict[str, tuple[Any, Any, str]]] = {
         "report": (bool, True, "write metrics.json and report.md at shutdown"),
         "plots": (bool, False, "also write the plots at shutdown"),
     },
+    "http": {
+        "bind": (str, None, "serve the HTTP API and dashboard on HOST:PORT (or PORT: on "
+                 "127.0.0.1); default: no HTTP server"),
+        "token": (str, None, "API token (bearer) required by writes and the stream (default: "
+                  "the environment variable KAUTZTWIN_HTTP_TOKEN); needed off loopback"),
+        "rate_limit": (float, 60.0, "writes a minute per client (0: no limit)"),
+    },
 }
 
 #: short command-line forms: flag -> (section, key)
@@ -101,9 +129,14 @@ SHORT_FLAGS = {
     "--out": ("service", "out"), "--duration": ("service", "duration"),
     "--store": ("history", "path"), "--estimator": ("estimator", "path"),
     "--log-level": ("logging", "level"), "--log-file": ("logging", "file"),
+    "--http": ("http", "bind"),
 }
 
-_PATH_KEYS = ("service.out", "history.path", "estimator.path", "logging.file")
+_PATH_KEYS = ("service.out", "history.path", "estimator.path", "logging.file", "plant.file")
+#: kinds of plant link: in-process simulators, then the remote and recorded ones
+KINDS = ("hydraulic", "tclab", "opcua", "mqtt", "replay")
+_REMOTE = ("opcua", "mqtt")
+_COLUMN_ROLES = ("t", "u", "y")
 _LEVELS = ("debug", "info", "warning", "error")
 
 
@@ -237,9 +270,7 @@ class ServiceConfig:
 
     def __post_init__(self) -> None:
         p = self.plant
-        p["kind"] = p["kind"].strip().lower()
-        if p["kind"] not in ("hydraulic", "tclab", "opcua"):
-            raise DataError(f"plant.kind must be hydraulic, tclab or opcua, got {p['kind']!r}")
+        self._plant_kind(p)
         if p["kind"] == "opcua":
             if not p["endpoint"]:
                 raise DataError("plant.endpoint is needed for an OPC UA plant "
@@ -247,8 +278,22 @@ class ServiceConfig:
             from ..twin.physical.opcua import parse_endpoint
 
             parse_endpoint(p["endpoint"])
-        elif p["kind"] != "hydraulic" and p["drift"]:
+        elif p["kind"] == "mqtt":
+            self._mqtt_entries(p)
+        elif p["kind"] == "replay":
+            self._replay_entries(p)
+        if p["kind"] != "hydraulic" and p["drift"]:
             raise DataError("plant.drift applies to the hydraulic simulator only")
+        if p["kind"] not in _REMOTE:
+            for key in ("topic", "topics", "dt", "broker"):
+                if p[key] is not None:
+                    raise DataError(f"plant.{key} applies to an MQTT plant (kind = mqtt), "
+                                    f"not to kind = {p['kind']}")
+        if p["kind"] != "replay":
+            for key in ("file", "columns"):
+                if p[key] is not None:
+                    raise DataError(f"plant.{key} applies to a replay (kind = replay), "
+                                    f"not to kind = {p['kind']}")
         for key in ("speed", "connect_timeout", "stale_periods"):
             if not p[key] > 0:
                 raise DataError(f"plant.{key} must be positive, got {p[key]:g}")
@@ -256,6 +301,10 @@ class ServiceConfig:
             raise DataError(f"plant.drift must be a fraction in (-0.9, 0.9), got {p['drift']:g}")
         if p["drift"] and p["kind"] == "hydraulic" and not p["drift_events"]:
             p["drift_events"] = (20.0, 40.0)
+        if p["on_outage"] not in ("hold", "safe"):
+            raise DataError(f"plant.on_outage must be hold or safe, got {p['on_outage']!r}")
+        if p["on_outage"] == "safe" and p["safe_input"] is None:
+            raise DataError("plant.on_outage = safe needs plant.safe_input")
         log = self.values["logging"]
         if log["level"].lower() not in _LEVELS:
             raise DataError(f"logging.level must be one of {', '.join(_LEVELS)}, "
@@ -268,6 +317,7 @@ class ServiceConfig:
                             "(--out DIR)")
         if svc["duration"] is not None and not svc["duration"] > 0:
             raise DataError(f"service.duration must be positive, got {svc['duration']:g}")
+        self._check_http()
         est = self.values["estimator"]["path"]
         if est is not None:
             path = self._path(est)
@@ -278,6 +328,82 @@ class ServiceConfig:
             v = self.model[key]
             if v is not None and not v > 0 and key != "recovery_window":
                 raise DataError(f"model.{key} must be positive, got {v:g}")
+
+    @staticmethod
+    def _plant_kind(p: dict[str, Any]) -> None:
+        """Read ``plant.kind``: a kind, or a URL / ``replay:FILE`` that implies one."""
+        text = p["kind"].strip()
+        low = text.lower()
+        if low.startswith("opc.tcp://"):
+            p["kind"], p["endpoint"] = "opcua", text
+        elif low.startswith("mqtt://"):
+            p["kind"], p["broker"] = "mqtt", text
+        elif low.startswith("replay:"):
+            p["kind"], p["file"] = "replay", text.partition(":")[2].strip() or p["file"]
+        else:
+            p["kind"] = low
+        if p["kind"] not in KINDS:
+            raise DataError(f"plant.kind must be one of {', '.join(KINDS)} (or an "
+                            f"opc.tcp:// or mqtt:// URL), got {text!r}")
+
+    @staticmethod
+    def _mqtt_entries(p: dict[str, Any]) -> None:
+        """Check the MQTT entries: broker URL, topic prefix, topics by role."""
+        from ..twin.physical.mqtt import DEFAULT_BROKER, default_topics, parse_broker
+
+        if p["broker"] is None and p["endpoint"] and p["endpoint"].lower().startswith("mqtt://"):
+            p["broker"] = p["endpoint"]
+        p["broker"] = (p["broker"] or DEFAULT_BROKER).strip()
+        try:
+            parse_broker(p["broker"])
+            if p["topic"] is not None:
+                default_topics(p["topic"])
+        except DataError as exc:
+            raise DataError(f"plant.{'broker' if 'broker' in str(exc) else 'topic'}: "
+                            f"{exc}") from None
+        roles = ("y", "u", "ack", "meta", "status")
+        for role, topic in (p["topics"] or {}).items():
+            if role not in roles:
+                raise DataError(f"plant.topics: unknown role {role!r}; use one of "
+                                f"{', '.join(roles)}")
+            if not topic.strip() or "#" in topic or "+" in topic:
+                raise DataError(f"plant.topics.{role} must be a topic without wildcards, "
+                                f"got {topic!r}")
+        if p["dt"] is not None and not p["dt"] > 0:
+            raise DataError(f"plant.dt must be positive, got {p['dt']:g}")
+        p["endpoint"] = p["broker"]  # where the service is attached, for the logs
+
+    def _replay_entries(self, p: dict[str, Any]) -> None:
+        """Check the replay entries: the CSV file exists, the columns name t, u and y."""
+        if not p["file"]:
+            raise DataError("plant.file is needed for a replay (a CSV file with t, u, y "
+                            "columns; --plant replay:FILE)")
+        path = self._path(p["file"])
+        if not path.is_file():
+            raise DataError(f"plant.file {p['file']!r}: no such file ({path})")
+        p["file"] = str(path)
+        columns = dict(p["columns"] or {})
+        for role in columns:
+            if role not in _COLUMN_ROLES:
+                raise DataError(f"plant.columns: unknown role {role!r}; use t, u and y")
+        p["columns"] = {r: columns.get(r, r).strip() or r for r in _COLUMN_ROLES}
+
+    def _check_http(self) -> None:
+        """``[http]``: a bind off the loopback interface needs a token."""
+        h = self.values["http"]
+        if h["token"] is None and os.environ.get("KAUTZTWIN_HTTP_TOKEN"):
+            h["token"] = os.environ["KAUTZTWIN_HTTP_TOKEN"]
+        if h["token"] is not None and len(h["token"].strip()) < 8:
+            raise DataError("http.token must have at least 8 characters")
+        if not h["rate_limit"] >= 0:
+            raise DataError(f"http.rate_limit must be >= 0, got {h['rate_limit']:g}")
+        if h["bind"] is None:
+            return
+        host, port = parse_bind(h["bind"])
+        if not _is_loopback(host) and h["token"] is None:
+            raise DataError(f"http.bind {h['bind']!r} is not a loopback address: set an API "
+                            "token (http.token or KAUTZTWIN_HTTP_TOKEN) to serve beyond this "
+                            "machine")
 
     def _path(self, text: str) -> Path:
         path = Path(text).expanduser()
@@ -328,8 +454,54 @@ class ServiceConfig:
         -------
         dict
         """
-        return {s: {k: ("***" if k == "password" else v) for k, v in kv.items() if v is not None}
+        return {s: {k: ("***" if k in ("password", "token") else v)
+                    for k, v in kv.items() if v is not None}
                 for s, kv in self.values.items()}
+
+
+def parse_bind(text: str) -> tuple[str, int]:
+    """``(host, port)`` of ``HOST:PORT``, ``[IPv6]:PORT`` or ``PORT`` (on 127.0.0.1).
+
+    Parameters
+    ----------
+    text : str
+
+    Returns
+    -------
+    tuple of (str, int)
+
+    Raises
+    ------
+    DataError
+        When it is none of these, or the port is outside 0..65535.
+
+    Examples
+    --------
+    >>> from kautztwin.service.config import parse_bind
+    >>> parse_bind("8000"), parse_bind("0.0.0.0:80"), parse_bind("[::1]:8000")
+    (('127.0.0.1', 8000), ('0.0.0.0', 80), ('::1', 8000))
+    """
+    value = str(text).strip()
+    host, sep, port = value.rpartition(":")
+    if not sep:
+        host, port = "127.0.0.1", value
+    host = host.strip("[]") or "127.0.0.1"
+    try:
+        number = int(port)
+    except ValueError:
+        number = -1
+    if not 0 <= number <= 65535 or any(c.isspace() for c in host):
+        raise DataError(f"http.bind must be HOST:PORT or PORT, got {text!r}")
+    return host, number
+
+
+def _is_loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
 
 
 def load_service_config(
@@ -388,5 +560,8 @@ def load_service_config(
         value = parse_value(section, key, value, text=isinstance(value, str))
         if dotted in _PATH_KEYS and value is not None:
             value = str(Path(value).expanduser().absolute())  # relative to the working folder
+        elif dotted == "plant.kind" and value.strip().lower().startswith("replay:"):
+            file = value.strip().partition(":")[2].strip()
+            value = f"replay:{Path(file).expanduser().absolute()}" if file else value
         values[section][key] = value
     return ServiceConfig(values, source, base)

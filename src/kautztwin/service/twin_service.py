@@ -2,8 +2,10 @@
 
 A :class:`TwinService` builds the plant link from a
 :class:`~kautztwin.service.config.ServiceConfig` (an in-process simulator paced
-by a sped-up real-time :class:`~kautztwin.twin.physical.Clock`, or an
-:class:`~kautztwin.twin.physical.OPCUAPlant` that paces the loop itself), a
+by a sped-up real-time :class:`~kautztwin.twin.physical.Clock`, a recorded
+run replayed at its own pace times ``speed``, or an
+:class:`~kautztwin.twin.physical.OPCUAPlant` or
+:class:`~kautztwin.twin.physical.MQTTPlant` that paces the loop itself), a
 :class:`~kautztwin.twin.runtime.DigitalTwin` with a long horizon (checked
 against a memory limit before anything is allocated) and its SQLite history,
 and steps it on the wall clock until it is asked to stop (SIGTERM/SIGINT in the
@@ -25,6 +27,7 @@ import asyncio
 import json
 import logging
 import math
+import sys
 import threading
 import time
 from dataclasses import replace
@@ -44,6 +47,9 @@ BYTES_PER_SAMPLE = 8 * 22
 #: default horizon: a day of plant time, at most this many samples
 DEFAULT_HORIZON_S = 86400.0
 MAX_DEFAULT_SAMPLES = 1_000_000
+#: GIL switch interval while a network link runs, s (default 5 ms: the link thread would
+#: wait up to that long for the GIL after each socket read, behind the sample loop)
+LINK_SWITCH_INTERVAL_S = 0.001
 
 
 class _Formatter(logging.Formatter):
@@ -174,6 +180,9 @@ class TwinService:
         Set to stop the service (:meth:`request_stop`).
     summary : dict
         What the last :meth:`run` did (samples, versions, outages...).
+    api : ApiServer or None
+        The HTTP API and dashboard (``[http]``, :mod:`kautztwin.service.api`),
+        started and stopped with :meth:`run`.
 
     Examples
     --------
@@ -197,6 +206,7 @@ class TwinService:
         self._open_outages: list[Any] = []
         self._reconnects = 0
         self._time_offset: float | None = None
+        self.api: Any = None
 
     # ------------------------------------------------------------------ setup
     def build(self) -> None:
@@ -208,7 +218,8 @@ class TwinService:
             Bad settings, a horizon too large for ``service.max_memory_mb``, a
             bad estimator folder.
         LinkError
-            An OPC UA plant that cannot be reached within ``plant.connect_timeout``.
+            An OPC UA server or MQTT broker that cannot be reached within
+            ``plant.connect_timeout``.
         """
         from ..twin.physical import Clock
         from ..twin.runtime import DigitalTwin
@@ -218,12 +229,17 @@ class TwinService:
         estimator = None
         if cfg.estimator_path is not None:
             estimator = load_estimator(cfg.estimator_path)
-        if p["kind"] == "opcua":
-            plant = self._opcua_plant()
+        if p["kind"] in ("opcua", "mqtt"):
+            plant = self._opcua_plant() if p["kind"] == "opcua" else self._mqtt_plant()
             clock = Clock()  # the link paces the loop: each step waits for the next sample
             profile: Any = cfg.model.get("profile") or (
                 p["object"] if p["object"] in ("hydraulic", "tclab") else "hydraulic")
             drift_events: tuple[float, ...] = ()  # on the server's clock: mapped for metrics
+        elif p["kind"] == "replay":
+            plant = self._replay_plant()
+            clock = Clock.real_time(p["speed"], tolerance=plant.dt)  # the recorded pace x speed
+            profile = plant
+            drift_events = tuple(p["drift_events"] or ())
         else:
             from ..twin.physical.factory import make_plant
 
@@ -251,6 +267,7 @@ class TwinService:
             plant=p["object"], nodes=p["nodes"], scaling=None, input_limits=p["input_limits"],
             connect_timeout=p["connect_timeout"], stale_periods=p["stale_periods"],
             username=p["username"], password=p["password"], security=p["security"],
+            on_outage=p["on_outage"], safe_input=p["safe_input"],
         )
         if p["namespace"]:
             kwargs["namespace"] = p["namespace"]
@@ -265,6 +282,45 @@ class TwinService:
         plant.reset = noting_reset
         plant.connect()  # LinkError after connect_timeout: before anything is allocated
         return plant
+
+    def _mqtt_plant(self) -> Any:
+        """The MQTT link of ``kind = mqtt``, connected (LinkError when the broker is away)."""
+        from ..twin.physical import MQTTPlant
+
+        p = self.config.plant
+        plant = MQTTPlant(
+            p["broker"], plant=p["object"], topic=p["topic"], topics=p["topics"], dt=p["dt"],
+            input_limits=p["input_limits"], stale_periods=p["stale_periods"],
+            connect_timeout=p["connect_timeout"], username=p["username"],
+            password=p["password"],
+        )
+        plant.connected = True  # a real plant: a resumed run continues, it is not re-simulated
+        reset = plant.reset
+
+        def noting_reset() -> Any:
+            self._reset_reading = reading = reset()
+            origin = getattr(plant, "_origin_t", math.nan)  # the payload's plant time at reset
+            if self.twin is not None and math.isfinite(origin):
+                self._time_offset = origin - self.twin.k * plant.dt  # for drift_events
+            return reading
+
+        plant.reset = noting_reset
+        try:
+            plant.connect()  # LinkError after connect_timeout: before anything is allocated
+            _ = plant.dt, plant.input_limits  # from the retained meta topic unless configured
+        except BaseException:
+            plant.close()
+            raise
+        return plant
+
+    def _replay_plant(self) -> Any:
+        """The recorded run of ``kind = replay``, its clock starting at 0."""
+        from ..twin.physical import ReplayPlant
+
+        p = self.config.plant
+        cols = p["columns"]
+        record = ReplayPlant.from_csv(p["file"], columns=(cols["t"], cols["u"], cols["y"]))
+        return ReplayPlant(record.t - record.t[0], record.u, record.y, name=record.name)
 
     def _twin_config(self, profile: Any, dt: float, drift_events: tuple[float, ...]) -> Any:
         from ..twin.runtime import TwinConfig
@@ -326,7 +382,13 @@ class TwinService:
         cfg = self.config
         twin = self.twin
         svc = cfg.values["service"]
+        api = self._api()
+        switch = sys.getswitchinterval()
+        if getattr(self.plant, "outages", None) is not None:  # a network link's client thread
+            sys.setswitchinterval(LINK_SWITCH_INTERVAL_S)  # gets the GIL back within 1 ms
         try:
+            if api is not None:
+                api.start()  # the HTTP API of [http] (a busy port: a DataError, nothing run)
             state = twin.start(resume=cfg.values["history"]["resume"])
             resumed = twin.k > 0
             _log("start", plant=self.twin_config.plant, link=cfg.plant["kind"],
@@ -351,6 +413,8 @@ class TwinService:
                 if state.events:
                     self._log_events(state)
                 self._watch_link(state)
+                if api is not None:
+                    api.view.after_sample(state)  # the API's view; runs its queued jobs
             result = twin.finish()
             wall = time.monotonic() - wall0
             self.summary = {
@@ -360,14 +424,26 @@ class TwinService:
                 "reidentifications": int(result.counts.get("reidentifications_accepted", 0)),
                 "outages": self._outages_seen, "reconnects": self._reconnects,
                 "wall_s": wall, "samples_per_s": (result.n_done - start_k) / max(wall, 1e-9),
+                "sync_fit": None if math.isnan(state.fit) else round(float(state.fit), 3),
                 "status": result.status, "out": str(cfg.out),
             }
             if svc["report"]:
                 self._report(result)
             _log("stop", **{k: v for k, v in self.summary.items() if k != "out"})
         finally:
+            sys.setswitchinterval(switch)
+            if api is not None:
+                api.stop()
             twin.close()
         return self.summary
+
+    def _api(self) -> Any:
+        """The HTTP API (:class:`~kautztwin.service.api.ApiServer`): ``http.bind``, or attached."""
+        if self.api is None and self.config.values["http"]["bind"] is not None:
+            from .api import ApiServer
+
+            self.api = ApiServer.from_service(self)
+        return self.api
 
     def _report(self, result: Any) -> None:
         from ..twin.report import compute_metrics, write_report

@@ -6,13 +6,14 @@ the default, an embedded SQLite file in WAL mode; its module notes describe
 durability and concurrency) and :class:`MemoryHistory` (:mod:`.memory`, in
 memory, for tests and replay).  A server database can implement the same
 protocol later.  The records they return and the row/JSON conversions they
-share live in :mod:`.records`.
+share live in :mod:`.records`; :func:`read_run` (:mod:`.readback`) reads a run back.
 """
 
 from __future__ import annotations
 
 from .memory import MemoryHistory
 from .protocol import HistoryStore
+from .readback import SIGNALS, RunHistory, read_run
 from .records import (
     SCHEMA_VERSION,
     Event,
@@ -27,6 +28,7 @@ from .sqlite import SQLiteHistory
 
 __all__ = [
     "SCHEMA_VERSION",
+    "SIGNALS",
     "Event",
     "HistoryError",
     "HistoryStore",
@@ -35,6 +37,8 @@ __all__ = [
     "MemoryHistory",
     "Prediction",
     "ResumeState",
+    "RunHistory",
     "RunInfo",
     "SQLiteHistory",
+    "read_run",
 ]

@@ -38,6 +38,7 @@ from contextlib import contextmanager
 from types import TracebackType
 from typing import Any
 
+import numpy as np
 from numpy.typing import ArrayLike
 
 from ..._validation import check_choice, check_int
@@ -496,6 +497,49 @@ class SQLiteHistory:
                 "VALUES (?, ?, ?, ?, ?, ?)",
                 (rid, k, tt, horizon, model_version, text),
             )
+
+    def add_predictions(
+        self, run_id: int, rows: Iterable[tuple[int, float | None, int | None, ArrayLike]]
+    ) -> int:
+        """Store many predictions in one transaction.
+
+        Parameters
+        ----------
+        run_id : int
+            The run.
+        rows : iterable of (k, t, model_version, y_pred)
+            As the arguments of :meth:`add_prediction`.
+
+        Returns
+        -------
+        int
+            Number of predictions stored.
+
+        Raises
+        ------
+        HistoryError
+            If a ``model_version`` is not stored for the run.
+        """
+        values = []
+        for k, t, version, y_pred in rows:
+            horizon, text = _pred_json(np.atleast_1d(np.asarray(y_pred, dtype=float)))
+            values.append((_check_int(k, "k"), _real(t, "t"), horizon,
+                           _opt_int(version, "model_version"), text))
+        if not values:
+            return 0
+        with self._write() as conn:
+            rid, _ = self._require_run(conn, run_id)
+            stored = {r[0] for r in conn.execute(
+                "SELECT version FROM model_versions WHERE run_id = ?", (rid,))}
+            missing = {v[3] for v in values if v[3] is not None} - stored
+            if missing:
+                raise HistoryError(f"run {rid} has no model version {min(missing)}")
+            conn.executemany(
+                "INSERT INTO predictions(run_id, k, t, horizon, model_version, y_pred) "
+                "VALUES (?, ?, ?, ?, ?, ?)",
+                [(rid, *v) for v in values],
+            )
+        return len(values)
 
     def predictions(self, run_id: int, since: int | None = None) -> list[Prediction]:
         """Stored predictions; see :meth:`HistoryStore.predictions`."""

@@ -37,6 +37,9 @@ from .base import Reading
 
 __all__ = ["LinkError", "Outage", "SampleLink"]
 
+#: shortest wall-clock silence that makes the data stale, s (scheduler jitter of a loaded host)
+STALE_FLOOR_S = 0.5
+
 _COUNTERS = ("samples", "dropouts", "stale", "link_down", "late", "out_of_order", "duplicates",
              "rejected_writes", "failed_writes", "reconnects")
 
@@ -163,10 +166,46 @@ class SampleLink:
         self._last_ts = -math.inf
         self._last_t = 0.0
         self._degraded_at: float | None = None  # monotonic time of the last NaN reading
+        self._overrun: float | None = None  # plant time NaN readings reached (late samples)
         self._stale_outage: Outage | None = None
         self._link_outage: Outage | None = None
         self._k = 0
         self._u = math.nan
+
+    def _init_policy(self, on_outage: str, safe_input: float | None) -> None:
+        """Check and keep the outage policy (``'hold'`` or ``'safe'``) and the safe input."""
+        if on_outage not in ("hold", "safe"):
+            raise DataError(f"on_outage must be 'hold' or 'safe', got {on_outage!r}")
+        safe = None
+        if safe_input is not None:
+            try:
+                safe = float(safe_input)
+            except (TypeError, ValueError):
+                raise DataError(f"safe_input must be a number, got {safe_input!r}") from None
+            if not math.isfinite(safe):
+                raise DataError(f"safe_input must be finite, got {safe}")
+        if on_outage == "safe" and safe is None:
+            raise DataError("on_outage = 'safe' needs a safe_input (the input to fall back to)")
+        self.on_outage = on_outage
+        self.safe_input = safe
+
+    @property
+    def degraded(self) -> bool:
+        """Whether the link is down or the last reading was a missing sample (an outage)."""
+        return self._degraded_at is not None or not self._link_up
+
+    def _policy_input(self, value: float) -> tuple[float | None, str]:
+        """``(input to send, policy)``: ``value`` normally; during an outage the policy's.
+
+        ``'hold'`` sends nothing (the plant holds the last input it accepted),
+        ``'safe'`` sends :attr:`safe_input` (clipped to the input limits).
+        """
+        if not self.degraded:
+            return value, ""
+        if getattr(self, "on_outage", "hold") == "safe" and self.safe_input is not None:
+            lo, hi = self.input_limits
+            return min(hi, max(lo, self.safe_input)), "safe"
+        return None, "hold"
 
     # ------------------------------------------------------------------ configuration
     def connect(self) -> Any:  # pragma: no cover - every link defines it
@@ -294,29 +333,49 @@ class SampleLink:
             raise DataError(f"{self.name}: call reset() before step()")
         return value
 
-    def _next_reading(self, value: float, write: str,
-                      real: Callable[[Any, int], Reading]) -> Reading:
-        """Wait for the next sample (``real(sample, dropped)``) or a NaN reading when none comes."""
+    def _next_reading(self, value: float, write: str, real: Callable[[Any, int], Reading],
+                      time_of: Callable[[Any], float] | None = None) -> Reading:
+        """Wait for the next sample (``real(sample, dropped)``) or a NaN reading when none comes.
+
+        ``time_of(sample)``: its plant time; a sample whose time a NaN reading
+        already took (it came after the data were declared stale: the plant
+        published late) is still returned, flagged ``meta['late']`` and counted
+        in ``late``; its reading time is earlier than the NaN readings' (the
+        twin's sanitizer flags it late and holds), and it is stored.
+        """
         self._k += 1
         period = self.dt / self.speed
         with self._cond:
             while True:
                 sample, dropped = self._pop()
                 if sample is not None:
-                    return real(sample, dropped)
+                    reading = real(sample, dropped)
+                    if (time_of is not None and self._overrun is not None
+                            and time_of(sample) <= self._overrun + 0.5 * self.dt):
+                        if not reading.meta["late"]:
+                            self.counters["late"] += 1
+                        reading = Reading(reading.t, reading.y, {**reading.meta, "late": True})
+                    else:
+                        self._overrun = None
+                    return reading
                 now = time.monotonic()
                 if self._degraded_at is not None:
                     deadline = self._degraded_at + period
                 else:
-                    deadline = self._last_fresh + self.stale_periods * period
+                    deadline = self._last_fresh + max(self.stale_periods * period,
+                                                      STALE_FLOOR_S)
                 if now >= deadline:
                     at = deadline if now - deadline < period else now  # no backlog of NaNs
                     return self._missing_reading(value, write, dropped, at)
                 self._cond.wait(deadline - now)
 
     def _sample_reading(self, s: Any, t: float, dropped: int, u_req: float, write: str,
-                        late: bool) -> Reading:
-        """The reading of sample ``s`` at plant time ``t`` (call with the lock held)."""
+                        late: bool, u_applied: float | None = None) -> Reading:
+        """The reading of sample ``s`` at plant time ``t`` (call with the lock held).
+
+        ``u_applied``: the input the plant reports it applied over the period
+        (``meta['u']``); the last accepted write when the plant reports none.
+        """
         dropout = not math.isfinite(s.value)
         self._last_ts = s.ts
         self._last_t = t
@@ -327,7 +386,9 @@ class SampleLink:
         self.counters["dropouts" if dropout else "samples"] += 1
         if late:
             self.counters["late"] += 1
-        meta = dict(k=self._k, u=self._u, u_requested=u_req, write=write,
+        u_eff = self._u if u_applied is None or not math.isfinite(u_applied) else u_applied
+        meta = dict(k=self._k, u=u_eff, u_applied=math.nan if u_applied is None else u_applied,
+                    u_requested=u_req, write=write,
                     link="up" if self._link_up else "down", dropout=dropout, stale=False,
                     late=late, out_of_order=dropped, status=s.status, source_time=s.ts,
                     latency=s.latency, queued=len(self._heap))
@@ -339,6 +400,7 @@ class SampleLink:
         stale = link == "up"
         self._degraded_at = at
         self._last_t += self.dt
+        self._overrun = self._last_t  # the latest time a NaN reading took
         self.counters["dropouts"] += 1
         self.counters["stale" if stale else "link_down"] += 1
         if stale and self._stale_outage is None:

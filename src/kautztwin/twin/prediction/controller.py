@@ -9,6 +9,7 @@ the samples applied since, bit for bit as a :meth:`MPCController.rebuild`.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -188,6 +189,17 @@ class MPCController:
         self._xv_prev = self._xv
         self._xv = self._A @ self._xv + self._B * (float(v) - self.input_offset)
         self._xd = self._A @ self._xd + self._B * float(d)
+
+    def revise_last_input(self, delta: float) -> None:
+        """The plant applied ``delta`` more than the last :meth:`advance` said (a live plant).
+
+        Parameters
+        ----------
+        delta : float
+            Applied input minus the input of the last :meth:`advance` (``v + d``).
+        """
+        if math.isfinite(delta) and delta != 0.0 and getattr(self, "_xv", None) is not None:
+            self._xv = self._xv + self._B * float(delta)
 
     def __repr__(self) -> str:
         n = None if self.model is None else self.model.n_functions

@@ -45,7 +45,10 @@ twin with ``(u(k), y(k))``; act on the update module's events (a
 ``'resync'`` asks the optimizer to re-optimise the poles or consolidate
 the fast path; a new model version is retuned and validated before the
 controller is rebuilt on it); step the plant; commit the sample (every
-``commit_every`` samples in one transaction).
+``commit_every`` samples in one transaction).  A live plant (a network link)
+reports the input it really applied over the period (``meta['u_applied']``):
+when it differs (the input arrived late) the sample, both twins' filter states
+and the MPC's take the applied one (:meth:`Updater.revise_last_input`).
 
 **Resume.**  :meth:`DigitalTwin.start` with ``resume=True`` looks for an unfinished
 run with the same configuration in the store.  Its committed samples are
@@ -371,7 +374,10 @@ class DigitalTwin:
         self._v_prev, self._d_prev, self._u_prev = v, d, u
         upd_ms, fit, fit_s = self._update(k, t_k, u, y_raw)
         self._advance(k, u, replay)
+        if not (replay or self._replayable) and k + 1 < cfg.n_samples:
+            u = self._applied_input(k, u)
         if not replay:
+            self._record.prediction(k)
             self._record.commit((k, t_k, u, y_raw, int(flags)), every=cfg.commit_every,
                                 last=k + 1 == cfg.n_samples)
         self._k = k + 1
@@ -490,6 +496,27 @@ class DigitalTwin:
                 late_s = self.clock.wait_until(self._reading.t + self._t_offset - self._clock_t0)
                 if self.clock.realtime and late_s > self.clock.tolerance:
                     self._late_ticks += 1
+
+    def _applied_input(self, k: int, u: float) -> float:
+        """The input a live plant reports it applied over period ``k`` (else ``u``).
+
+        An input that reached the plant late was applied a period later; the
+        sample, the update module and the static twin take the applied one,
+        so the model learns from what happened.
+        """
+        applied = float(self._reading.meta.get("u_applied", math.nan))
+        if not math.isfinite(applied) or applied == u:
+            return u
+        if not self._reading.t + self._t_offset > self._record.arrays["t"][k]:
+            return u  # a late sample (after NaN readings): its period is not this one
+        self._record.arrays["u"][k] = applied
+        if k >= self._k_cl and self.config.controlled and self.controller.model is not None:
+            self.controller.revise_last_input(applied - u)
+        if k >= self._k_cl:
+            for upd in (self.updater, self.static):
+                if upd is not None:
+                    upd.revise_last_input(applied)
+        return applied
 
     def _recorded_input(self, k: int) -> float:
         u = getattr(self.plant, "u", None)

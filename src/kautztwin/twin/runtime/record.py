@@ -158,6 +158,7 @@ class RunRecord:
         self.committed = 0
         self.version_offset: dict[int, float] = {}
         self._pending: list[tuple[int, float, float, float, int]] = []
+        self._pending_pred: list[tuple[int, float | None, int | None, float]] = []
         self._stored_events: set[tuple[str, int | None]] = set()
         self._stored_versions: set[int] = set()
 
@@ -251,12 +252,42 @@ class RunRecord:
         if len(self._pending) >= every or last:
             self.flush()
 
+    def prediction(self, k: int) -> None:
+        """Queue the twin's one-step prediction of sample ``k`` (committed with the samples).
+
+        It is stored as made at sample ``k - 1`` (horizon 1), by the model
+        version in force then (at the twin's first sample, its first version;
+        ``None`` when that version is not stored).
+
+        Parameters
+        ----------
+        k : int
+            The sample (its ``y_pred`` is NaN before the twin exists: nothing is queued).
+        """
+        y = float(self.arrays["y_pred"][k])
+        if k < 1 or math.isnan(y):
+            return
+        t = float(self.arrays["t"][k - 1])
+        version: int | None = int(self.arrays["version"][k - 1])
+        if version not in self._stored_versions:  # the twin's first sample: its first model
+            version = int(self.arrays["version"][k])
+            version = version if version in self._stored_versions else None
+        self._pending_pred.append((k - 1, t if math.isfinite(t) else None, version, y))
+
     def flush(self) -> None:
-        """Commit the pending samples in one transaction."""
+        """Commit the pending samples in one transaction (then their predictions)."""
         if self._pending and self.run_id is not None:
             self.history.append_measurements(self.run_id, self._pending)
             self.committed += len(self._pending)
             self._pending = []
+        if self._pending_pred and self.run_id is not None:
+            rows, self._pending_pred = self._pending_pred, []
+            bulk = getattr(self.history, "add_predictions", None)
+            if bulk is not None:
+                bulk(self.run_id, rows)
+            else:
+                for k, t, version, y in rows:
+                    self.history.add_prediction(self.run_id, k, [y], model_version=version, t=t)
 
     # ------------------------------------------------------------------ result
     def result(

@@ -342,6 +342,25 @@ class RecursiveKautzEstimator:
         phi[:n] = self._A @ phi[:n] + self._B * (u - self._u0)
         return yhat
 
+    def revise_last_input(self, u_used: float, u_applied: float) -> None:
+        """Correct the last step's input: the plant applied ``u_applied``, not ``u_used``.
+
+        The filter is linear in the input, so the state after the last
+        :meth:`update` / :meth:`advance` becomes the one that ``u_applied``
+        would have given (a live plant reports the input it really applied).
+
+        Parameters
+        ----------
+        u_used : float
+            The input the last step advanced the filter with.
+        u_applied : float
+            The input the plant applied over that period.
+        """
+        self._check_is_fitted()
+        delta = float(u_applied) - float(u_used)
+        if math.isfinite(delta) and delta != 0.0:
+            self._phi[:self._n] += self._B * delta
+
     def advance(self, u: float, n_steps: int = 1) -> None:
         """Advance the filter with input ``u`` without using a measurement.
 

@@ -847,6 +847,47 @@ class Updater:
             job.u, job.y, job.n_val, u_now=u_now, k_submitted=job.k,
         )
 
+    def request_reidentification(self) -> bool:
+        """Schedule one re-identification attempt on the recent window at the next sample.
+
+        The attempt takes the path of a drift-triggered one (background or
+        synchronous, judged on held-out data, a new model version when
+        accepted), so whoever drives the loop sees it in the next
+        :meth:`step`'s ``model_update``.
+
+        Returns
+        -------
+        bool
+            ``False`` (nothing scheduled) when re-identification is disabled or
+            an attempt is already scheduled or in flight.
+        """
+        if (not self.reidentify_enabled or self._recovery is not None
+                or self._worker.pending is not None):
+            return False
+        self._recovery = {"change": max(self._k - self.reid_samples, 0),
+                          "next": self._k, "attempts": self.max_attempts - 1}
+        return True
+
+    def revise_last_input(self, u: float) -> None:
+        """The plant applied ``u`` over the last sample's period, not the input :meth:`step` got.
+
+        A live plant may apply an input a period late (it arrived after the
+        plant's sample); it reports what it applied.  The estimator's filter
+        state and the input buffer of re-identification are corrected, so
+        the update module learns from the (input, output) pairs that happened.
+
+        Parameters
+        ----------
+        u : float
+            The input applied (ignored when not finite).
+        """
+        uf = _finite_or_nan(u)
+        if math.isnan(uf) or not self._u or uf == self._u[-1]:
+            return
+        self.estimator_.revise_last_input(self._u[-1], uf)
+        self._u[-1] = uf
+        self._u_last = uf
+
     def cancel_pending(self, reason: str = "cancelled") -> bool:
         """Make the background attempt in flight stale (after a reset of your own, say).
 

@@ -1,0 +1,701 @@
+"""The twin's HTTP API and live dashboard (FastAPI): watch it, query it, steer it.
+
+:func:`create_app` builds the FastAPI application around a
+:class:`~kautztwin.service.twin_view.TwinView` of a running
+:class:`~kautztwin.service.TwinService`; :class:`ApiServer` serves it with
+uvicorn in a thread, started and stopped with the service
+(``kautztwin twin serve --http 127.0.0.1:8000``).  The endpoints (reference and
+curl examples in ``docs/api-http.md``; OpenAPI at ``/docs``):
+
+* reads: ``GET /health``, ``/state``, ``/models``, ``/models/{version}``
+  (``?format=file``: the model file), ``/history`` (JSON or CSV, paged),
+  ``/events``, and ``/`` the dashboard;
+* ``POST /whatif``: the current model's response to a planned input (or a
+  set-point step) from the current state, with a band from its uncertainty;
+* writes: ``POST /setpoint`` (within the output limits; from the next sample),
+  ``POST /reidentify``;
+* ``GET /stream``: server-sent events of samples and events.
+
+Security: the server binds 127.0.0.1 unless told otherwise, and a bind off
+the loopback interface needs a token (checked by the configuration).  With a
+token, the writes, ``/whatif`` and ``/stream`` need ``Authorization: Bearer
+TOKEN`` (401 otherwise, and nothing changes); writes and what-ifs are
+rate-limited per client (429), and every write is logged in the store as an
+``api-*`` event with who and when.
+
+Size: over 600 lines because every endpoint's request and response shape lives
+here with its docstring (the OpenAPI page is generated from them); the state
+the endpoints read and the jobs they hand to the sample loop are in
+:mod:`.twin_view`.
+"""
+
+import asyncio
+import csv
+import hmac
+import io
+import json
+import logging
+import math
+import socket
+import threading
+import time
+from datetime import UTC, datetime
+from importlib import resources
+from typing import Annotated, Any, Literal
+
+import numpy as np
+from fastapi import Depends, FastAPI, Query, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import HTMLResponse, JSONResponse, Response, StreamingResponse
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from ..exceptions import DataError
+from ..twin.history import Measurements
+from .config import parse_bind
+from .twin_view import ApiError, RateLimiter, TwinView, _num
+
+__all__ = ["ApiServer", "ReidentifyRequest", "SetpointRequest", "WhatIfRequest", "create_app"]
+
+_logger = logging.getLogger("kautztwin.service")
+
+#: signals of ``GET /history`` (the store's measurements)
+HISTORY_SIGNALS = ("k", "t", "u", "y", "flags")
+#: most samples of one ``/history`` page and of one what-if
+MAX_PAGE = 10_000
+MAX_WHATIF = 5_000
+
+
+# ---------------------------------------------------------------------- request bodies
+class SetpointRequest(BaseModel):
+    """Body of ``POST /setpoint``.
+
+    Parameters
+    ----------
+    value : float
+        The new set-point (output units), finite, within the output limits.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+    value: float = Field(allow_inf_nan=False, description="new set-point, output units")
+
+
+class ReidentifyRequest(BaseModel):
+    """Body of ``POST /reidentify`` (optional; no fields yet but a note for the event log).
+
+    Parameters
+    ----------
+    reason : str, optional
+        Why, for the event log (at most 200 characters).
+    """
+
+    model_config = ConfigDict(extra="forbid")
+    reason: str = Field("", max_length=200)
+
+
+class WhatIfRequest(BaseModel):
+    """Body of ``POST /whatif``: exactly one of ``u`` and ``setpoint``.
+
+    Parameters
+    ----------
+    u : list of float, optional
+        Planned inputs of the next samples (1 to 5000, finite).
+    setpoint : float, optional
+        A set-point step: the input that brings the model's steady state to
+        it (within the input limits), held for ``steps`` samples.
+    steps : int, default=200
+        Samples of a set-point step's prediction (1 to 5000).
+    """
+
+    model_config = ConfigDict(extra="forbid")
+    u: list[float] | None = Field(None, min_length=1, max_length=MAX_WHATIF)
+    setpoint: float | None = Field(None, allow_inf_nan=False)
+    steps: int = Field(200, ge=1, le=MAX_WHATIF)
+
+    @model_validator(mode="after")
+    def _one_of(self) -> "WhatIfRequest":
+        if (self.u is None) == (self.setpoint is None):
+            raise ValueError("give exactly one of u (an input sequence) and setpoint")
+        if self.u is not None and not all(math.isfinite(v) for v in self.u):
+            raise ValueError("u must hold finite numbers")
+        return self
+
+
+def _field_error(field: str, message: str, status: int = 422) -> JSONResponse:
+    return JSONResponse({"detail": [{"loc": ["body", field], "msg": message}],
+                         "message": f"{field}: {message}"}, status_code=status)
+
+
+def _query_error(field: str, message: str) -> JSONResponse:
+    return JSONResponse({"detail": [{"loc": ["query", field], "msg": message}],
+                         "message": f"{field}: {message}"}, status_code=422)
+
+
+# ---------------------------------------------------------------------- the loop's jobs
+def _next_time(service: Any) -> tuple[int, float]:
+    twin = service.twin
+    dt = twin.config.dt
+    t = twin.state.t
+    return int(twin.k), (float(t) + dt if math.isfinite(t) else twin.k * dt)
+
+
+def _apply_setpoint(value: float, who: dict[str, Any]) -> Any:
+    """A job: hold ``value`` from the next sample on (replaces the rest of the schedule)."""
+
+    def job(service: Any) -> dict[str, Any]:
+        from dataclasses import replace
+
+        twin = service.twin
+        cfg = twin.config
+        if not cfg.controlled:
+            raise ApiError(409, "the twin does not control this plant (no set-point)")
+        k, t_next = _next_time(service)
+        t_from = t_next - 0.5 * cfg.dt
+        schedule = tuple(p for p in cfg.setpoints if p[0] < t_from) + ((t_from, value),)
+        twin.config = replace(cfg, setpoints=schedule)
+        payload = {"value": value, **who, "k_from": k}
+        twin.history.log_event(twin.run_id, "api-setpoint",
+                               f"set-point {value:g} from sample {k} by {who['who']}",
+                               k=k, t=t_next, payload=payload)
+        return {"setpoint": value, "k_from": k, "t_from": t_next}
+
+    return job
+
+
+def _request_reidentification(who: dict[str, Any], reason: str) -> Any:
+    def job(service: Any) -> dict[str, Any]:
+        twin = service.twin
+        upd = twin.updater
+        if upd is None:
+            raise ApiError(409, "the twin has no model yet (identification phase)")
+        scheduled = upd.request_reidentification()
+        k, t_next = _next_time(service)
+        if not scheduled:
+            raise ApiError(409, "a re-identification is already scheduled or running "
+                                "(or re-identification is disabled)")
+        twin.history.log_event(twin.run_id, "api-reidentify",
+                               f"re-identification requested by {who['who']}"
+                               + (f": {reason}" if reason else ""),
+                               k=k, t=t_next, payload={**who, "reason": reason})
+        return {"scheduled": True, "k": k, "version": int(twin.state.version)}
+
+    return job
+
+
+def _what_if(req: WhatIfRequest, sigma: float) -> Any:
+    def job(service: Any) -> dict[str, Any]:
+        from ..ident.kautz_oe import filter_states
+
+        twin = service.twin
+        upd = twin.updater
+        if upd is None:
+            raise ApiError(409, "the twin has no model yet (identification phase)")
+        est = upd.estimator_
+        in_off = float(est.input_offset)
+        mode = "input"
+        u_ss = None
+        if req.setpoint is not None:
+            gain = float(est.model_.dc_gain)
+            if abs(gain) < 1e-12:
+                raise ApiError(409, "the current model has no static gain")
+            u_ss = in_off + (req.setpoint - float(est.offset_)) / gain
+            lo, hi = twin.plant.input_limits if twin.config.mpc is None else (
+                twin.config.mpc.u_min, twin.config.mpc.u_max)
+            u_ss = float(np.clip(u_ss, lo, hi))
+            u = np.full(req.steps, u_ss)
+            mode = "setpoint"
+        else:
+            u = np.asarray(req.u, dtype=float)
+        x0 = est.state_
+        y = est.simulate(u, x0=x0)
+        X = filter_states(est.basis_, u - in_off, x0)[:-1]
+        P = est.covariance_
+        if P.shape[0] == X.shape[1] + 1:
+            X = np.hstack([X, np.ones((X.shape[0], 1))])
+        lower = upper = None
+        if math.isfinite(sigma) and P.shape[0] == X.shape[1]:
+            spread = np.einsum("ij,jk,ik->i", X, P, X)
+            half = 2.0 * sigma * np.sqrt(1.0 + np.maximum(spread, 0.0))
+            lower, upper = (y - half).tolist(), (y + half).tolist()
+        k, t_next = _next_time(service)
+        dt = twin.config.dt
+        return {"mode": mode, "k": k, "version": int(twin.state.version), "dt": dt,
+                "t": (t_next + dt * np.arange(u.size)).tolist(), "u": u.tolist(),
+                "y": [_num(v) for v in y], "lower": lower, "upper": upper,
+                "sigma": _num(sigma), "u_steady": u_ss,
+                "band": "y ± 2σ·sqrt(1 + xᵀPx): σ the RMS one-step error of the recent "
+                        "samples, P the recursive estimator's covariance"}
+
+    return job
+
+
+# ---------------------------------------------------------------------- the application
+def create_app(view: TwinView, *, token: str | None = None,
+               limiter: RateLimiter | None = None) -> FastAPI:
+    """The FastAPI application of a twin's view.
+
+    Parameters
+    ----------
+    view : TwinView
+        The running service's view.
+    token : str, optional
+        The API token the writes, ``/whatif`` and ``/stream`` need (bearer).
+    limiter : RateLimiter, optional
+        Limits writes and what-ifs per client (none when omitted).
+
+    Returns
+    -------
+    fastapi.FastAPI
+    """
+    app = FastAPI(title="kautztwin twin", version="1",
+                  description="The digital twin's HTTP API (docs/api-http.md).")
+    app.state.view = view
+    service = view.service
+
+    @app.exception_handler(RequestValidationError)
+    async def _invalid(request: Request, exc: RequestValidationError) -> JSONResponse:
+        errors = [{"loc": list(e.get("loc", ())), "msg": e.get("msg", ""),
+                   "type": e.get("type", "")} for e in exc.errors()]
+        first = errors[0] if errors else {"loc": [], "msg": "invalid request"}
+        where = ".".join(str(p) for p in first["loc"][1:]) or ".".join(map(str, first["loc"]))
+        return JSONResponse({"detail": errors, "message": f"{where}: {first['msg']}"},
+                            status_code=422)
+
+    @app.exception_handler(ApiError)
+    async def _api_error(request: Request, exc: ApiError) -> JSONResponse:
+        return JSONResponse({"detail": exc.message, "message": exc.message},
+                            status_code=exc.status)
+
+    def _who(request: Request) -> dict[str, Any]:
+        host = request.client.host if request.client else "unknown"
+        auth = "token" if token is not None else "loopback"
+        return {"who": f"{host} ({auth})", "client": host, "auth": auth,
+                "when": datetime.now(UTC).isoformat(timespec="milliseconds")}
+
+    def _authorised(request: Request) -> None:
+        if token is None:
+            return
+        header = request.headers.get("authorization", "")
+        scheme, _, given = header.partition(" ")
+        if scheme.lower() != "bearer" or not hmac.compare_digest(given.strip().encode(),
+                                                                 token.encode()):
+            _logger.warning("api-unauthorised", extra={"event": "api-unauthorised", "fields": {
+                "path": request.url.path,
+                "client": request.client.host if request.client else "unknown"}})
+            raise ApiError(401, "missing or wrong API token (Authorization: Bearer TOKEN)")
+
+    def reader(request: Request) -> None:
+        """Dependency of the stream: the token when one is set."""
+        _authorised(request)
+
+    def writer(request: Request) -> dict[str, Any]:
+        """Dependency of writes and what-ifs: the token, then the rate limit."""
+        _authorised(request)
+        who = _who(request)
+        if limiter is not None and not limiter.allow(who["client"]):
+            raise ApiError(429, f"too many requests: at most {limiter.per_minute:g} writes a "
+                                "minute per client")
+        return who
+
+    def _store() -> tuple[Any, int | None]:
+        """The store and the run (``None`` before the run is opened: empty answers)."""
+        twin = service.twin
+        if twin is None or twin.run_id is None:
+            return None, None
+        return twin.history, int(twin.run_id)
+
+    def _log_write(kind: str, who: dict[str, Any], **fields: Any) -> None:
+        _logger.info(kind, extra={"event": kind, "fields": {"who": who["who"], **fields}})
+
+    # ------------------------------------------------------------------ reads
+    @app.get("/health", tags=["read"])
+    def health() -> dict[str, Any]:
+        """Liveness: whether the sample loop runs, and where it is."""
+        latest = view.latest()
+        return {"status": "ok", "running": view.running, "k": latest.get("k"),
+                "uptime_s": time.time() - view.started,
+                "run_id": None if service.twin is None else service.twin.run_id}
+
+    @app.get("/state", tags=["read"])
+    def state() -> dict[str, Any]:
+        """The latest sample: measured y, input u, set-point, twin prediction, fit, version."""
+        latest = view.latest()
+        twin = service.twin
+        kind = service.config.plant["kind"]
+        link = "in-process"
+        if kind not in ("hydraulic", "tclab", "replay"):
+            down = any(getattr(o, "kind", "") == "link"
+                       for o in getattr(service, "_open_outages", ()))
+            link = "down" if down else "up"
+        out: dict[str, Any] = {**latest, "running": view.running, "link": link,
+                               "plant": kind}
+        if twin is not None:
+            cfg = twin.config
+            lo, hi = _setpoint_limits(service)
+            out.update(run_id=twin.run_id, dt=cfg.dt, n_samples=cfg.n_samples,
+                       controlled=cfg.controlled,
+                       setpoint_limits=[_num(lo), _num(hi)])
+        return out
+
+    @app.get("/models", tags=["read"])
+    def models() -> list[dict[str, Any]]:
+        """Every model version of the run with its provenance and validation fit."""
+        history, run_id = _store()
+        if history is None:
+            return []
+        active = history.active_model(run_id)
+        info = _version_events(history, run_id)
+        return [_model_summary(dm, info.get(dm.version), active) for dm in
+                history.model_versions(run_id)]
+
+    @app.get("/models/{version}", tags=["read"], response_model=None)
+    def model(version: int,
+              format: Literal["json", "file"] = "json") -> dict[str, Any] | Response:
+        """One version: provenance, poles, coefficients, transfer function (or its file)."""
+        history, run_id = _store()
+        found = [] if history is None else [
+            dm for dm in history.model_versions(run_id) if dm.version == version]
+        if not found:
+            raise ApiError(404, f"version: no model version {version}"
+                                + (f" in run {run_id}" if run_id is not None else " yet"))
+        dm = found[0]
+        if format == "file":
+            body = json.dumps(dm.to_dict(), indent=2) + "\n"
+            return Response(body, media_type="application/json", headers={
+                "Content-Disposition": f'attachment; filename="model-v{version}.json"'})
+        out = _model_summary(dm, _version_events(history, run_id).get(version),
+                             history.active_model(run_id))
+        m = dm.model
+        num, den = m.transfer_function()
+        out.update(coefficients=m.coefficients.tolist(), dt=m.dt,
+                   transfer_function={"num": num.tolist(), "den": den.tolist(),
+                                      "variable": "z" if m.dt > 0 else "s"},
+                   dc_gain=_num(m.dc_gain), file=f"/models/{version}?format=file")
+        return out
+
+    @app.get("/history", tags=["read"], response_model=None)
+    def history_(
+        signals: str = Query("k,t,u,y,flags", description="comma-separated: k,t,u,y,flags"),
+        start: float | None = Query(None, description="first time, plant s"),
+        end: float | None = Query(None, description="last time, plant s"),
+        limit: int = Query(1000, ge=1, le=MAX_PAGE),
+        after: int = Query(-1, ge=-1, description="page cursor: samples with k > after"),
+        format: Literal["json", "csv"] = "json",
+    ) -> dict[str, Any] | Response:
+        """Stored samples, paged by ``after`` (the ``next`` of the previous page)."""
+        names = [s.strip() for s in signals.split(",") if s.strip()]
+        bad = [s for s in names if s not in HISTORY_SIGNALS]
+        if bad or not names:
+            return _query_error("signals", f"unknown signal {bad[0] if bad else '(none)'!r}; "
+                                           f"use {', '.join(HISTORY_SIGNALS)}")
+        if start is not None and end is not None and end < start:
+            return _query_error("end", f"end ({end:g}) is before start ({start:g})")
+        history, run_id = _store()
+        if history is None:
+            m = Measurements([], [], [], [], [])
+        else:
+            m = history.measurements(run_id, since=after if after >= 0 else None)
+        mask = np.ones(len(m), dtype=bool)
+        if start is not None:
+            mask &= m.t >= start
+        if end is not None:
+            mask &= m.t <= end
+        idx = np.flatnonzero(mask)
+        more = idx.size > limit
+        idx = idx[:limit]
+        cols = {s: getattr(m, s)[idx] for s in names}
+        nxt = int(m.k[idx[-1]]) if more and idx.size else None
+        if format == "csv":
+            buf = io.StringIO()
+            w = csv.writer(buf, lineterminator="\n")
+            w.writerow(names)
+            for row in zip(*(cols[s].tolist() for s in names), strict=True):
+                w.writerow(["" if isinstance(v, float) and not math.isfinite(v) else v
+                            for v in row])
+            headers = {"X-Next": str(nxt)} if nxt is not None else {}
+            return Response(buf.getvalue(), media_type="text/csv", headers=headers)
+        data = {s: ([int(v) for v in cols[s]] if s in ("k", "flags")
+                    else [_num(v) for v in cols[s]]) for s in names}
+        return {"run_id": run_id, "n": int(idx.size), "next": nxt, "signals": data}
+
+    @app.get("/events", tags=["read"])
+    def events(kind: str | None = None, after: int = Query(0, ge=0),
+               limit: int = Query(500, ge=1, le=MAX_PAGE)) -> dict[str, Any]:
+        """Logged events (model versions, re-identifications, outages, API writes)."""
+        history, run_id = _store()
+        evs = [] if history is None else [
+            e for e in history.events(run_id, kind) if e.event_id > after]
+        more = len(evs) > limit
+        evs = evs[:limit]
+        return {"run_id": run_id, "next": evs[-1].event_id if more else None,
+                "events": [{"id": e.event_id, "k": e.k, "t": _num(e.t), "kind": e.kind,
+                            "message": e.message, "payload": e.payload} for e in evs]}
+
+    # ------------------------------------------------------------------ what-if and writes
+    @app.post("/whatif", tags=["predict"])
+    def whatif(req: WhatIfRequest,
+               who: Annotated[dict[str, Any], Depends(writer)]) -> dict[str, Any]:
+        """The current model's response to planned inputs (or a set-point step), from now."""
+        return view.call(_what_if(req, view.residual_sigma()))
+
+    @app.post("/setpoint", tags=["write"], response_model=None)
+    def setpoint(req: SetpointRequest,
+                 who: Annotated[dict[str, Any], Depends(writer)]) -> dict[str, Any] | JSONResponse:
+        """Hold a new set-point from the next sample on (within the output limits)."""
+        lo, hi = _setpoint_limits(service)
+        if not lo <= req.value <= hi:
+            return _field_error("value", f"set-point {req.value:g} is outside the limits "
+                                         f"[{lo:g}, {hi:g}]")
+        out = view.call(_apply_setpoint(req.value, who))
+        _log_write("api-setpoint", who, value=req.value, k_from=out["k_from"])
+        view.add_event("api-setpoint", f"set-point {req.value:g} by {who['who']}",
+                       k=out["k_from"], t=out["t_from"])
+        return {**out, "who": who["who"], "when": who["when"]}
+
+    @app.post("/reidentify", tags=["write"])
+    def reidentify(who: Annotated[dict[str, Any], Depends(writer)],
+                   req: ReidentifyRequest | None = None) -> dict[str, Any]:
+        """Schedule a re-identification on the recent window (judged like a drift-triggered one)."""
+        reason = "" if req is None else req.reason
+        out = view.call(_request_reidentification(who, reason))
+        _log_write("api-reidentify", who, k=out["k"])
+        view.add_event("api-reidentify", f"re-identification requested by {who['who']}",
+                       k=out["k"])
+        return {**out, "who": who["who"], "when": who["when"]}
+
+    # ------------------------------------------------------------------ live
+    @app.get("/stream", tags=["live"])
+    async def stream(request: Request, _: Annotated[None, Depends(reader)],
+                     since: int = Query(0, ge=0),
+                     max_messages: int | None = Query(None, ge=1),
+                     period: float = Query(0.2, ge=0.02, le=5.0)) -> StreamingResponse:
+        """Server-sent events: ``samples`` (batches) and ``event`` messages, every ``period`` s."""
+
+        async def gen() -> Any:
+            last = since
+            last_ev = max((e["seq"] for e in view.events()), default=0)
+            sent = 0
+            yield ": kautztwin stream\n\n"
+            while max_messages is None or sent < max_messages:
+                if await request.is_disconnected():
+                    return
+                batch = view.samples(since=last, limit=2000)
+                if batch:
+                    last = batch[-1]["seq"]
+                    yield f"event: samples\ndata: {json.dumps(batch)}\n\n"
+                    sent += 1
+                for ev in view.events(since=last_ev):
+                    last_ev = ev["seq"]
+                    yield f"event: event\ndata: {json.dumps(ev, default=str)}\n\n"
+                    sent += 1
+                await asyncio.sleep(period)
+
+        return StreamingResponse(gen(), media_type="text/event-stream",
+                                 headers={"Cache-Control": "no-cache"})
+
+    @app.get("/recent", tags=["live"])
+    def recent(since: int = Query(0, ge=0),
+               limit: int = Query(2000, ge=1, le=MAX_PAGE)) -> dict[str, Any]:
+        """Samples of the live ring buffer after ``since`` (what the dashboard starts from)."""
+        batch = view.samples(since=since, limit=limit)
+        return {"samples": batch, "seq": view.seq, "capacity": view.capacity}
+
+    # ------------------------------------------------------------------ dashboard
+    @app.get("/", response_class=HTMLResponse, include_in_schema=False)
+    def dashboard() -> HTMLResponse:
+        return HTMLResponse(_static("dashboard.html"))
+
+    @app.get("/static/{name}", include_in_schema=False)
+    def static(name: str) -> Response:
+        if name not in ("dashboard.js", "dashboard.css", "LICENSE.txt"):
+            raise ApiError(404, f"no static file {name!r}")
+        media = {"js": "text/javascript", "css": "text/css", "txt": "text/plain"}
+        return Response(_static(name), media_type=media[name.rsplit(".", 1)[1]])
+
+    return app
+
+
+def _static(name: str) -> str:
+    return resources.files("kautztwin.service").joinpath("static", name).read_text("utf-8")
+
+
+def _setpoint_limits(service: Any) -> tuple[float, float]:
+    """The output limits of the MPC (``-inf, inf`` when unbounded or uncontrolled)."""
+    twin = service.twin
+    mpc = None if twin is None else twin.config.mpc
+    if mpc is None:
+        return -math.inf, math.inf
+    return float(mpc.y_min), float(mpc.y_max)
+
+
+def _version_events(history: Any, run_id: int) -> dict[int, dict[str, Any]]:
+    """``{version: payload}`` of the run's ``model-version`` events (k, t, offset...)."""
+    out: dict[int, dict[str, Any]] = {}
+    for e in history.events(run_id, "model-version"):
+        p = e.payload if isinstance(e.payload, dict) else {}
+        if "version" in p:
+            out[int(p["version"])] = p
+    return out
+
+
+def _method(provenance: str) -> str:
+    """The identification method behind a provenance: OE, DNN, RLS or the provenance."""
+    p = provenance.lower()
+    if "dnn" in p or "estimator" in p or "step" in p:
+        return "DNN"
+    if "identification" in p:
+        return "OE"  # Kautz output error (ident.identify_output_error)
+    if "rls" in p:
+        return "RLS"
+    return provenance
+
+
+def _model_summary(dm: Any, info: dict[str, Any] | None, active: Any) -> dict[str, Any]:
+    info = info or {}
+    poles = [[float(p.real), float(p.imag)] for p in dm.model.poles]
+    method = _method(dm.provenance)
+    return {"version": dm.version, "provenance": dm.provenance, "method": method,
+            "created": dm.created,
+            "created_iso": datetime.fromtimestamp(dm.created, UTC).isoformat(timespec="seconds"),
+            "fit_percent": _num(dm.fit_percent), "k": info.get("k"), "t": _num(info.get("t")),
+            "offset": _num(info.get("offset")), "n_functions": dm.model.n_functions,
+            "poles": poles, "active": active is not None and active.version == dm.version}
+
+
+class ApiServer:
+    """The HTTP API of a :class:`~kautztwin.service.TwinService`, served by uvicorn in a thread.
+
+    Parameters
+    ----------
+    service : TwinService
+        The service (its loop feeds :attr:`view`).
+    bind : str, optional
+        ``HOST:PORT`` or ``PORT`` to serve on (port 0: a free one); ``None``
+        builds the app only (tests drive it with ``fastapi.testclient``).
+    token : str, optional
+        API token (bearer) of the writes, ``/whatif`` and ``/stream``.
+    rate_limit : float, default=60
+        Writes and what-ifs a minute per client (0: no limit).
+    capacity : int, default=3000
+        Samples of the live ring buffer.
+
+    Attributes
+    ----------
+    view : TwinView
+    app : fastapi.FastAPI
+    limiter : RateLimiter
+    url : str or None
+        ``http://HOST:PORT`` once started.
+
+    Raises
+    ------
+    DataError
+        A bind off the loopback interface without a token.
+    """
+
+    def __init__(self, service: Any, *, bind: str | None = None, token: str | None = None,
+                 rate_limit: float = 60.0, capacity: int = 3000) -> None:
+        from .config import _is_loopback
+
+        self.host, self.port = parse_bind(bind) if bind is not None else ("127.0.0.1", 0)
+        if bind is not None and not _is_loopback(self.host) and token is None:
+            raise DataError(f"http.bind {bind!r} is not a loopback address: set an API token")
+        self.bind = bind
+        self._token = token
+        self.view = TwinView(service, capacity=capacity)
+        self.limiter = RateLimiter(rate_limit)
+        self.app = create_app(self.view, token=token, limiter=self.limiter)
+        self.url: str | None = None
+        self._server: Any = None
+        self._thread: threading.Thread | None = None
+        self._error: BaseException | None = None
+
+    @classmethod
+    def from_service(cls, service: Any) -> "ApiServer":
+        """The server of the service's ``[http]`` section.
+
+        Parameters
+        ----------
+        service : TwinService
+
+        Returns
+        -------
+        ApiServer
+        """
+        h = service.config.values["http"]
+        return cls(service, bind=h["bind"], token=h["token"], rate_limit=h["rate_limit"])
+
+    def start(self, timeout: float = 10.0) -> None:
+        """Listen and serve in a daemon thread (nothing without a bind).
+
+        Parameters
+        ----------
+        timeout : float, default=10
+            Most seconds to wait for the server to come up.
+
+        Raises
+        ------
+        DataError
+            The address cannot be bound (busy, not on this machine) or the
+            server did not start in time.
+        """
+        if self.bind is None or self._thread is not None:
+            return
+        import uvicorn
+
+        family = socket.AF_INET6 if ":" in self.host else socket.AF_INET
+        sock = socket.socket(family, socket.SOCK_STREAM)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            sock.bind((self.host, self.port))
+        except OSError as exc:
+            sock.close()
+            raise DataError(f"http.bind: cannot listen on {self.host}:{self.port}: "
+                            f"{exc.strerror or exc}") from None
+        sock.listen(128)
+        port = sock.getsockname()[1]
+        host = f"[{self.host}]" if family == socket.AF_INET6 else self.host
+        self.url = f"http://{host}:{port}"
+        config = uvicorn.Config(self.app, log_level="warning", access_log=False,
+                                lifespan="off", timeout_graceful_shutdown=1)
+        self._server = server = uvicorn.Server(config)
+
+        def serve() -> None:
+            try:
+                server.run(sockets=[sock])
+            except BaseException as exc:  # reported by start()
+                self._error = exc
+            finally:
+                sock.close()
+
+        self._thread = threading.Thread(target=serve, name="kautztwin-http", daemon=True)
+        self._thread.start()
+        deadline = time.monotonic() + timeout
+        while not server.started:
+            if not self._thread.is_alive() or time.monotonic() > deadline:
+                self.stop()
+                raise DataError(f"http.bind: the HTTP server did not start on {self.url}"
+                                + (f": {self._error}" if self._error else ""))
+            time.sleep(0.02)
+        _logger.info("http", extra={"event": "http", "fields": {
+            "url": self.url, "docs": f"{self.url}/docs", "token": self.token_set}})
+
+    @property
+    def token_set(self) -> bool:
+        """Whether the writes, ``/whatif`` and ``/stream`` need a token."""
+        return self._token is not None
+
+    def stop(self, timeout: float = 5.0) -> None:
+        """Refuse the queued jobs and stop serving (idempotent).
+
+        Parameters
+        ----------
+        timeout : float, default=5
+            Most seconds to wait for the server thread.
+        """
+        self.view.stopped()
+        if self._server is not None:
+            self._server.should_exit = True
+        if self._thread is not None:
+            self._thread.join(timeout)
+        self._thread = None
+        self._server = None
