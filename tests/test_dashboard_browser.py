@@ -180,7 +180,10 @@ def test_dashboard_in_headless_chromium(browser, plant_link, tmp_path):
             time.sleep(0.1)
         if server is not None:  # the twin moved the plant's input node
             u_after = [s.u for s in list(server.history)[-50:]]
-            assert sum(u_after) / 50 > sum(u_before) / 50 + 0.01, (u_before[-5:], u_after[-5:])
+            # the output reached 102 above (quantitative check); here the direction: a higher
+            # set-point needs a larger valve command (~2 rad/s / 196 rad/s per unit = 0.01 at
+            # steady state, so the 50-sample means, transients included, may differ by less)
+            assert sum(u_after) / 50 > sum(u_before) / 50, (u_before[-5:], u_after[-5:])
         # a what-if request draws its overlay
         before = page.eval(points)
         page.eval("(() => { document.getElementById('wi-sp').value = '98';"

@@ -2,12 +2,9 @@
 
 from __future__ import annotations
 
-import asyncio
 import json
 import logging
 import math
-import socket
-import threading
 import time
 
 import amqtt  # noqa: F401  (a test extra: missing means a broken install)
@@ -16,87 +13,14 @@ import paho.mqtt  # noqa: F401  (a test extra: missing means a broken install)
 import paho.mqtt.client as mqtt  # noqa: E402
 import pytest
 
+from _service_helpers import Broker, FirstOrderPlant, drive_through_restart, free_port
 from kautztwin.exceptions import DataError  # noqa: E402
 from kautztwin.service import MQTTPlantServer  # noqa: E402
-from kautztwin.twin import HydraulicPlant, Reading  # noqa: E402
+from kautztwin.twin import HydraulicPlant  # noqa: E402
 from kautztwin.twin.physical import LinkError, MQTTPlant, parse_broker  # noqa: E402
 
 for _name in ("amqtt", "transitions", "kautztwin.service.mqtt_plant", "kautztwin.twin.physical"):
     logging.getLogger(_name).setLevel(logging.CRITICAL)
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-class Broker:
-    """An amqtt broker in a thread of its own; stop() and start() keep the port."""
-
-    def __init__(self) -> None:
-        self.port = _free_port()
-        self.url = f"mqtt://127.0.0.1:{self.port}"
-        self._thread: threading.Thread | None = None
-
-    def start(self) -> Broker:
-        ready = threading.Event()
-        self._thread = threading.Thread(target=asyncio.run, args=(self._main(ready),),
-                                        daemon=True)
-        self._thread.start()
-        assert ready.wait(10), "broker did not start"
-        return self
-
-    async def _main(self, ready: threading.Event) -> None:
-        from amqtt.broker import Broker as AmqttBroker
-
-        self._loop = asyncio.get_running_loop()
-        self._stop = asyncio.Event()
-        broker = AmqttBroker({
-            "listeners": {"default": {"type": "tcp", "bind": f"127.0.0.1:{self.port}"}},
-            "plugins": {"amqtt.plugins.authentication.AnonymousAuthPlugin":
-                        {"allow_anonymous": True}},
-        })
-        await broker.start()
-        ready.set()
-        await self._stop.wait()
-        await broker.shutdown()
-
-    def stop(self) -> None:
-        self._loop.call_soon_threadsafe(self._stop.set)
-        assert self._thread is not None
-        self._thread.join(10)
-
-
-@pytest.fixture(scope="module")
-def broker():
-    b = Broker().start()
-    yield b
-    b.stop()
-
-
-class FirstOrderPlant:
-    """A cheap noise-free plant ``y+ = 0.8 y + 0.2 u`` whose output can be poisoned."""
-
-    input_limits = (0.0, 10.0)
-
-    def __init__(self, dt: float = 0.05, poison: dict[int, float] | None = None) -> None:
-        self.dt = dt
-        self.name = "first"
-        self.poison = poison or {}
-
-    def reset(self) -> Reading:
-        self.k, self.y = 0, 0.0
-        return Reading(0.0, 0.0, {"u": math.nan, "k": 0})
-
-    def step(self, u: float | None) -> Reading:
-        self.k += 1
-        self.y = 0.8 * self.y + 0.2 * float(u)
-        y = self.poison.get(self.k % 10, self.y)
-        return Reading(self.k * self.dt, y, {"u": u, "k": self.k})
-
-    def close(self) -> None:
-        pass
 
 
 def _publisher(broker: Broker) -> mqtt.Client:
@@ -177,7 +101,7 @@ def test_config_errors():
         MQTTPlant(topic="plants/#")
     assert parse_broker("mqtt://localhost") == ("localhost", 1883)
     with pytest.raises(LinkError, match="cannot connect") as info:
-        MQTTPlant(f"mqtt://127.0.0.1:{_free_port()}", connect_timeout=1.0).reset()
+        MQTTPlant(f"mqtt://127.0.0.1:{free_port()}", connect_timeout=1.0).reset()
     assert "\n" not in str(info.value)
 
 
@@ -247,21 +171,8 @@ def test_broker_restart_reconnects_and_records_outage():
     server = MQTTPlantServer(plant, broker=broker.url).start()
     try:
         with MQTTPlant(broker.url, plant="first", stale_periods=3) as link:
-            link.reset()
-            readings = [link.step(2.0) for _ in range(5)]
-            broker.stop()
-            down_until = time.monotonic() + 2.0
-            while time.monotonic() < down_until:
-                readings.append(link.step(3.0))  # never raises while the broker is away
-            broker.start()  # same port
-            back = time.monotonic()
-            while time.monotonic() - back < 5.0:
-                r = link.step(3.0)
-                readings.append(r)
-                if not r.meta["dropout"]:
-                    break
-            reconnected_after = time.monotonic() - back
-            tail = [link.step(3.0) for _ in range(5)]
+            readings, reconnected_after, tail = drive_through_restart(link, broker.stop,
+                                                                      broker.start)
     finally:
         server.close()
         broker.stop()

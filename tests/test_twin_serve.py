@@ -7,66 +7,41 @@ import json
 import logging
 import os
 import signal
-import socket
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from _service_helpers import (
+    ROOT,
+    committed,
+    free_port,
+    log_events,
+    samples_digest,
+    serve,
+    store_state,
+    wait_committed,
+)
 from kautztwin.cli.main import main
 from kautztwin.service import load_service_config
 from kautztwin.twin.history import SQLiteHistory
 
-ROOT = Path(__file__).resolve().parents[1]
-ENV = dict(os.environ, OPENBLAS_NUM_THREADS="1", MPLBACKEND="Agg", PYTHONUNBUFFERED="1")
 
-
-def _serve(*argv: str) -> subprocess.Popen:
-    return subprocess.Popen(
-        [sys.executable, "-m", "kautztwin", "twin", "serve", "--logging-format", "json", *argv],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV, cwd=ROOT)
-
-
-def _committed(store: Path) -> int:
-    if not store.exists():
-        return 0
-    try:
-        with SQLiteHistory(store) as h:
-            runs = h.runs()
-            return len(h.measurements(runs[-1].run_id).k) if runs else 0
-    except Exception:  # the service is creating it
-        return 0
-
-
-def _wait_committed(proc: subprocess.Popen, store: Path, n: int, timeout: float) -> int:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        c = _committed(store)
-        if c >= n:
-            return c
-        assert proc.poll() is None, proc.communicate()[1][-2000:]
-        time.sleep(0.1)
-    raise AssertionError(f"only {_committed(store)} samples committed after {timeout} s")
-
-
-def _events(stderr: str) -> list[dict]:
-    return [json.loads(line) for line in stderr.splitlines() if line.startswith("{")]
-
-
-def _store_state(store: Path) -> tuple[int, str, int]:
-    """(committed samples, checksum of them, latest model version at or before them)."""
-    with SQLiteHistory(store) as h:
-        run = h.runs()[-1].run_id
-        m = h.measurements(run)
-        digest = hashlib.sha256()
-        for col in (m.k, m.t, m.u, m.y):
-            digest.update(np.ascontiguousarray(col, dtype=float).tobytes())
-        n = len(m.k)
-        versions = [v.version for v in h.model_versions(run)]
-    return n, digest.hexdigest(), max(versions, default=0)
+def _assert_resumed_without_loss(again: subprocess.Popen, err: str, store: Path, n0: int,
+                                 sum0: str, version0: int) -> None:
+    """The restarted service resumed at sample n0 and model version0, losing nothing."""
+    assert again.returncode == 0, err[-2000:]
+    start = next(e for e in log_events(err) if e["event"] == "start")
+    assert start["resumed"] is True and start["k"] == n0 and start["committed"] == n0
+    assert start["version"] == version0
+    n1, _, _ = store_state(store)
+    assert n1 > n0
+    with SQLiteHistory(store) as h:  # the committed prefix is unchanged, stored once
+        m = h.measurements(h.runs()[-1].run_id)
+        assert samples_digest(m, n0) == sum0
+        assert np.array_equal(m.k, np.arange(n1))
 
 
 def test_kill_9_mid_run_resumes_same_version_no_sample_lost(tmp_path):
@@ -74,30 +49,18 @@ def test_kill_9_mid_run_resumes_same_version_no_sample_lost(tmp_path):
     store = out / "history.sqlite"
     argv = ("--plant", "hydraulic", "--speed", "25", "--model-duration", "50", "--model-quick",
             "true", "--model-background", "false", "--out", str(out))
-    proc = _serve(*argv)
+    proc = serve(*argv)
     try:
-        _wait_committed(proc, store, 1200, 60)  # past the identification phase (400 samples)
+        wait_committed(proc, store, 1200, 60)  # past the identification phase (400 samples)
     finally:
         proc.kill()  # kill -9: no clean shutdown
         proc.communicate()
     assert proc.returncode == -signal.SIGKILL
-    n0, sum0, version0 = _store_state(store)
+    n0, sum0, version0 = store_state(store)
     assert n0 >= 1200 and version0 >= 1
-    again = _serve(*argv, "--duration", "1")
+    again = serve(*argv, "--duration", "1")
     _, err = again.communicate(timeout=60)
-    assert again.returncode == 0, err[-2000:]
-    start = next(e for e in _events(err) if e["event"] == "start")
-    assert start["resumed"] is True and start["k"] == n0 and start["committed"] == n0
-    assert start["version"] == version0
-    n1, _, _ = _store_state(store)
-    assert n1 > n0
-    with SQLiteHistory(store) as h:  # the committed prefix is unchanged, stored once
-        m = h.measurements(h.runs()[-1].run_id)
-        digest = hashlib.sha256()
-        for col in (m.k[:n0], m.t[:n0], m.u[:n0], m.y[:n0]):
-            digest.update(np.ascontiguousarray(col, dtype=float).tobytes())
-        assert digest.hexdigest() == sum0
-        assert np.array_equal(m.k, np.arange(n1))
+    _assert_resumed_without_loss(again, err, store, n0, sum0, version0)
 
 
 def test_offline_run_and_served_run_give_the_same_metrics(tmp_path):
@@ -122,13 +85,7 @@ def test_example_config_loads_and_serves(tmp_path):
     assert cfg.mpc["u_max"] == 0.7 and cfg.history_path == tmp_path / "history.sqlite"
     assert main(["twin", "serve", "--config", str(ROOT / "examples" / "twin.toml"),
                  "--duration", "1", "--out", str(tmp_path)]) == 0
-    assert _committed(tmp_path / "history.sqlite") > 0
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+    assert committed(tmp_path / "history.sqlite") > 0
 
 
 @pytest.mark.parametrize("toml, extra, message", [
@@ -148,7 +105,7 @@ def _free_port() -> int:
 def test_bad_config_is_one_line_and_exit_2(capsys, tmp_path, toml, extra, message):
     path = tmp_path / "twin.toml"
     path.write_text(toml)
-    extra = tuple(a.replace("PORT", str(_free_port())) for a in extra)
+    extra = tuple(a.replace("PORT", str(free_port())) for a in extra)
     t0 = time.monotonic()
     assert main(["twin", "serve", "--config", str(path), *extra,
                  "--out", str(tmp_path / "o")]) == 2
@@ -177,11 +134,11 @@ def test_end_to_end_against_the_opcua_plant_server(tmp_path):
     out = tmp_path / "e2e"
     store = out / "history.sqlite"
     with PlantServer(plant, endpoint="opc.tcp://127.0.0.1:0", speed=speed) as server:
-        proc = _serve("--plant", server.endpoint, "--plant-input-limits", "0.3,0.7",
+        proc = serve("--plant", server.endpoint, "--plant-input-limits", "0.3,0.7",
                       "--model-duration", "120", "--plant-drift-events", "30,50",
                       "--plant-connect-timeout", "20", "--out", str(out))
         try:
-            _wait_committed(proc, store, 3100, 75)  # > 60 s of plant time on the twin's clock
+            wait_committed(proc, store, 3100, 75)  # > 60 s of plant time on the twin's clock
             proc.send_signal(signal.SIGTERM)
             stdout, stderr = proc.communicate(timeout=30)
         finally:
@@ -190,10 +147,10 @@ def test_end_to_end_against_the_opcua_plant_server(tmp_path):
         served_s = server.k * server.dt
     assert proc.returncode == 0, stderr[-3000:]
     assert "twin serve opcua" in stdout
-    log = _events(stderr)
+    log = log_events(stderr)
     stop = next(e for e in log if e["event"] == "stop")
     assert stop["reason"] == "stop requested" and served_s >= 60
-    n, _, _ = _store_state(store)
+    n, _, _ = store_state(store)
     assert n == stop["n_samples"] >= 3100
     metrics = json.loads((out / "metrics.json").read_text())
     figures = (f"speed x{speed:g}: {n} samples in {stop['wall_s']:.1f} s wall "
@@ -235,12 +192,12 @@ def test_link_faults_server_stopped_then_frozen(tmp_path):
     store = out / "history.sqlite"
     server = PlantServer(plant, endpoint="opc.tcp://127.0.0.1:0", speed=speed).start()
     try:
-        proc = _serve("--plant", server.endpoint, "--plant-input-limits", "0.3,0.7",
+        proc = serve("--plant", server.endpoint, "--plant-input-limits", "0.3,0.7",
                       "--model-duration", "600", "--model-quick", "true",
                       "--plant-on-outage", "safe", "--plant-safe-input", "0.45",
                       "--plant-connect-timeout", "20", "--out", str(out))
         try:
-            _wait_committed(proc, store, 700, 90)  # past the identification phase
+            wait_committed(proc, store, 700, 90)  # past the identification phase
             _wait_until(proc, 2.0)
             stopped_at = time.time()
             server.stop()  # (a) the server goes away for 5 s
@@ -263,7 +220,7 @@ def test_link_faults_server_stopped_then_frozen(tmp_path):
     finally:
         server.close()
     assert proc.returncode == 0, stderr[-3000:]
-    stop = next(e for e in _events(stderr) if e["event"] == "stop")
+    stop = next(e for e in log_events(stderr) if e["event"] == "stop")
     assert stop["reason"] == "stop requested"
     with SQLiteHistory(store) as h:
         run = h.runs()[-1].run_id
@@ -336,27 +293,15 @@ def test_kill_9_against_the_opcua_plant_resumes_same_version(tmp_path):
         argv = ("--plant", server.endpoint, "--plant-input-limits", "0.3,0.7",
                 "--model-duration", "600", "--model-quick", "true", "--model-background", "false",
                 "--plant-connect-timeout", "20", "--out", str(out))
-        proc = _serve(*argv)
+        proc = serve(*argv)
         try:
-            _wait_committed(proc, store, 900, 90)  # past the identification phase
+            wait_committed(proc, store, 900, 90)  # past the identification phase
         finally:
             proc.kill()  # kill -9: no clean shutdown
             proc.communicate()
         assert proc.returncode == -signal.SIGKILL
-        n0, sum0, version0 = _store_state(store)
+        n0, sum0, version0 = store_state(store)
         assert n0 >= 900 and version0 >= 1
-        again = _serve(*argv, "--duration", "3")
+        again = serve(*argv, "--duration", "3")
         _, err = again.communicate(timeout=90)
-    assert again.returncode == 0, err[-2000:]
-    start = next(e for e in _events(err) if e["event"] == "start")
-    assert start["resumed"] is True and start["k"] == n0 and start["committed"] == n0
-    assert start["version"] == version0
-    n1, _, _ = _store_state(store)
-    assert n1 > n0
-    with SQLiteHistory(store) as h:  # the committed prefix is unchanged, stored once
-        m = h.measurements(h.runs()[-1].run_id)
-        digest = hashlib.sha256()
-        for col in (m.k[:n0], m.t[:n0], m.u[:n0], m.y[:n0]):
-            digest.update(np.ascontiguousarray(col, dtype=float).tobytes())
-        assert digest.hexdigest() == sum0
-        assert np.array_equal(m.k, np.arange(n1))
+    _assert_resumed_without_loss(again, err, store, n0, sum0, version0)

@@ -2,105 +2,24 @@
 
 from __future__ import annotations
 
-import asyncio
 import json
 import logging
-import os
 import signal
-import socket
-import subprocess
-import sys
-import threading
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
 
+from _service_helpers import ROOT, committed, free_port, log_events, serve
 from kautztwin.cli.main import main
 from kautztwin.exceptions import DataError
 from kautztwin.service import load_service_config
 from kautztwin.twin.history import SQLiteHistory
 
-ROOT = Path(__file__).resolve().parents[1]
-ENV = dict(os.environ, OPENBLAS_NUM_THREADS="1", MPLBACKEND="Agg", PYTHONUNBUFFERED="1")
 TCLAB_CSV = ROOT / "data" / "tclab_step_tests" / "tclab-data.csv"
 
 for _name in ("amqtt", "transitions", "kautztwin.service.mqtt_plant", "kautztwin.twin.physical"):
     logging.getLogger(_name).setLevel(logging.CRITICAL)
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-class Broker:
-    """An amqtt broker on a free loopback port, in a thread of its own."""
-
-    def __init__(self) -> None:
-        self.port = _free_port()
-        self.url = f"mqtt://127.0.0.1:{self.port}"
-        self._thread: threading.Thread | None = None
-
-    def start(self) -> Broker:
-        ready = threading.Event()
-        self._thread = threading.Thread(target=asyncio.run, args=(self._main(ready),),
-                                        daemon=True)
-        self._thread.start()
-        assert ready.wait(10), "broker did not start"
-        return self
-
-    async def _main(self, ready: threading.Event) -> None:
-        from amqtt.broker import Broker as AmqttBroker
-
-        self._loop = asyncio.get_running_loop()
-        self._stop = asyncio.Event()
-        broker = AmqttBroker({
-            "listeners": {"default": {"type": "tcp", "bind": f"127.0.0.1:{self.port}"}},
-            "plugins": {"amqtt.plugins.authentication.AnonymousAuthPlugin":
-                        {"allow_anonymous": True}},
-        })
-        await broker.start()
-        ready.set()
-        await self._stop.wait()
-        await broker.shutdown()
-
-    def stop(self) -> None:
-        self._loop.call_soon_threadsafe(self._stop.set)
-        assert self._thread is not None
-        self._thread.join(10)
-
-
-@pytest.fixture(scope="module")
-def broker():
-    import amqtt  # noqa: F401  (a test extra: missing means a broken install)
-    import paho.mqtt  # noqa: F401  (a test extra: missing means a broken install)
-    b = Broker().start()
-    yield b
-    b.stop()
-
-
-def _serve(*argv: str) -> subprocess.Popen:
-    return subprocess.Popen(
-        [sys.executable, "-m", "kautztwin", "twin", "serve", "--logging-format", "json", *argv],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV, cwd=ROOT)
-
-
-def _committed(store: Path) -> int:
-    if not store.exists():
-        return 0
-    try:
-        with SQLiteHistory(store) as h:
-            runs = h.runs()
-            return len(h.measurements(runs[-1].run_id).k) if runs else 0
-    except Exception:  # the service is creating it
-        return 0
-
-
-def _events(stderr: str) -> list[dict]:
-    return [json.loads(line) for line in stderr.splitlines() if line.startswith("{")]
 
 
 def _one_error_line(err: str) -> list[str]:
@@ -160,12 +79,12 @@ def test_twin_serve_against_the_mqtt_plant_server(broker, tmp_path):
     with MQTTPlantServer(plant, broker=broker.url, speed=5.0) as server:
         # stale after 50 periods (0.2 s at x5): the in-process Python broker's delivery
         # jitter is over the default 3 periods (12 ms) now and then (see docs/service.md)
-        proc = _serve("--plant", broker.url, "--plant-connect-timeout", "20",
+        proc = serve("--plant", broker.url, "--plant-connect-timeout", "20",
                       "--plant-stale-periods", "50",
                       "--model-duration", "120", "--model-quick", "true", "--out", str(out))
         try:
             end = time.monotonic() + 60
-            while _committed(store) < 300:
+            while committed(store) < 300:
                 assert time.monotonic() < end, "fewer than 300 samples committed in 60 s"
                 assert proc.poll() is None, proc.communicate()[1][-3000:]
                 time.sleep(0.1)
@@ -178,7 +97,7 @@ def test_twin_serve_against_the_mqtt_plant_server(broker, tmp_path):
         published = [s for s in server.history if s.published]
     assert proc.returncode == 0, stderr[-3000:]
     assert "twin serve mqtt" in stdout
-    log = _events(stderr)
+    log = log_events(stderr)
     start = next(e for e in log if e["event"] == "start")
     stop = next(e for e in log if e["event"] == "stop")
     assert start["link"] == "mqtt" and start["endpoint"] == broker.url
@@ -205,7 +124,7 @@ def test_bad_broker_url_is_one_line_exit_2(capsys, tmp_path):
 
 def test_unreachable_broker_is_one_line_exit_2(capsys, tmp_path):
     import paho.mqtt  # noqa: F401  (a test extra: missing means a broken install)
-    url = f"mqtt://127.0.0.1:{_free_port()}"  # nothing listens there
+    url = f"mqtt://127.0.0.1:{free_port()}"  # nothing listens there
     t0 = time.monotonic()
     assert main(["twin", "serve", "--plant", url, "--plant-connect-timeout", "1",
                  "--out", str(tmp_path / "o")]) == 2
@@ -217,11 +136,11 @@ def test_unreachable_broker_is_one_line_exit_2(capsys, tmp_path):
 # --------------------------------------------------------------------------- replay
 def test_replay_of_a_shipped_record_runs_to_its_end(tmp_path):
     out = tmp_path / "replay"
-    proc = _serve("--plant", f"replay:{TCLAB_CSV.relative_to(ROOT)}",
+    proc = serve("--plant", f"replay:{TCLAB_CSV.relative_to(ROOT)}",
                   "--plant-columns", "t=Time,u=Q1,y=T1", "--speed", "400", "--out", str(out))
     stdout, stderr = proc.communicate(timeout=120)
     assert proc.returncode == 0, stderr[-3000:]
-    stop = next(e for e in _events(stderr) if e["event"] == "stop")
+    stop = next(e for e in log_events(stderr) if e["event"] == "stop")
     assert stop["reason"] == "horizon reached" and stop["status"] == "finished"
     rows = TCLAB_CSV.read_text().strip().splitlines()[1:]
     recorded = np.array([[float(c) for c in r.split(",")] for r in rows])

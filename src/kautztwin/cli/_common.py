@@ -3,10 +3,14 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import re
+import signal
 import sys
+import threading
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -28,6 +32,7 @@ __all__ = [
     "parse_poles",
     "parse_span",
     "print_json",
+    "stop_on_signals",
 ]
 
 #: flags whose values may start with "-" (negative poles); see join_option_values
@@ -420,3 +425,26 @@ def print_json(obj: dict[str, Any]) -> None:
         f"  {json.dumps(key)}: {json.dumps(value, allow_nan=False)}" for key, value in data.items()
     ]
     sys.stdout.write("{\n" + ",\n".join(items) + "\n}\n")
+
+
+@contextlib.contextmanager
+def stop_on_signals(stop: Callable[[], Any]) -> Iterator[None]:
+    """Call ``stop()`` on SIGINT or SIGTERM while the block runs; restore the handlers after.
+
+    Signal handlers can only be set from the main thread; elsewhere (a command run
+    from a worker thread, as some tests do) the block runs with the handlers unchanged.
+
+    Parameters
+    ----------
+    stop : callable
+        Called without arguments when either signal arrives (a request to stop).
+    """
+    previous: dict[int, Any] = {}
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            previous[sig] = signal.signal(sig, lambda *_: stop())
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)

@@ -5,13 +5,12 @@ from __future__ import annotations
 import argparse
 import logging
 import math
-import signal
 import sys
 import threading
 import time
 from typing import Any
 
-from ._common import CLIError
+from ._common import CLIError, stop_on_signals
 
 __all__ = ["register", "serve"]
 
@@ -174,34 +173,29 @@ def serve(args: argparse.Namespace) -> int:
     else:
         server = PlantServer(plant, endpoint=args.endpoint, speed=speed)
     stop = threading.Event()
-    previous: dict[int, Any] = {}
-    if threading.current_thread() is threading.main_thread():
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            previous[sig] = signal.signal(sig, lambda *_: stop.set())
-    try:
-        server.start()
-        drift_text = f", pole drift {drift:g} at {','.join(f'{e:g}' for e in events)} s" \
-            if drift else ""
-        if mqtt:
-            topics = server.topics
-            print(f"serving {args.plant} on {server.broker} ({topics['u']} in, {topics['y']} "
-                  f"out; dt {server.dt:g} s, speed x{server.speed:g}{drift_text}); "
-                  "Ctrl-C to stop", flush=True)
-        else:
-            ids = server.node_ids
-            print(f"serving {args.plant} on {server.endpoint} (namespace {server.namespace}: "
-                  f"{ids['u']} in, {ids['y']} out; dt {server.dt:g} s, speed x{server.speed:g}"
-                  f"{drift_text}); Ctrl-C to stop", flush=True)
-        end = math.inf if duration is None else time.monotonic() + duration
-        while not stop.is_set() and time.monotonic() < end:
-            stop.wait(min(0.5, max(0.0, end - time.monotonic())))
-            if server.status.startswith("fault"):
-                sys.stderr.write(f"kautztwin: warning: plant {server.status}\n")
-                break
-        print(f"stopped after {server.k + 1} samples ({(server.k) * server.dt:g} plant s)",
-              flush=True)
-    finally:
-        server.close()
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+    with stop_on_signals(stop.set):
+        try:
+            server.start()
+            drift_text = f", pole drift {drift:g} at {','.join(f'{e:g}' for e in events)} s" \
+                if drift else ""
+            if mqtt:
+                topics = server.topics
+                print(f"serving {args.plant} on {server.broker} ({topics['u']} in, {topics['y']} "
+                      f"out; dt {server.dt:g} s, speed x{server.speed:g}{drift_text}); "
+                      "Ctrl-C to stop", flush=True)
+            else:
+                ids = server.node_ids
+                print(f"serving {args.plant} on {server.endpoint} (namespace {server.namespace}: "
+                      f"{ids['u']} in, {ids['y']} out; dt {server.dt:g} s, speed x{server.speed:g}"
+                      f"{drift_text}); Ctrl-C to stop", flush=True)
+            end = math.inf if duration is None else time.monotonic() + duration
+            while not stop.is_set() and time.monotonic() < end:
+                stop.wait(min(0.5, max(0.0, end - time.monotonic())))
+                if server.status.startswith("fault"):
+                    sys.stderr.write(f"kautztwin: warning: plant {server.status}\n")
+                    break
+            print(f"stopped after {server.k + 1} samples ({(server.k) * server.dt:g} plant s)",
+                  flush=True)
+        finally:
+            server.close()
     return 0

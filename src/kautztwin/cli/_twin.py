@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from .._validation import check_memory
-from ._common import CLIError, print_json
+from ._common import CLIError, print_json, stop_on_signals
 
 __all__ = ["history", "register", "run", "serve"]
 
@@ -208,9 +208,6 @@ def serve(args: argparse.Namespace) -> int:
     KautzTwinError
         On a bad configuration (one line, exit 2) or an unreachable plant.
     """
-    import signal
-    import threading
-
     from ..service import TwinService, configure_logging, load_service_config
 
     overrides: dict[str, Any] = {}
@@ -232,16 +229,9 @@ def serve(args: argparse.Namespace) -> int:
     logging.getLogger("asyncua").setLevel(logging.ERROR)
     config.out.mkdir(parents=True, exist_ok=True)
     service = TwinService(config)
-    previous: dict[int, Any] = {}
-    if threading.current_thread() is threading.main_thread():
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            previous[sig] = signal.signal(sig, lambda *_: service.request_stop())
-    try:
+    with stop_on_signals(service.request_stop):
         service.build()
         s = service.run()
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
     resumed = f" (resumed after {s['resume_k']})" if s["resumed"] else ""
     fit = s.get("sync_fit_mean")
     fit_text = "n/a" if fit is None else f"{fit:.1f} %"
