@@ -31,6 +31,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
+from urllib.parse import urlsplit
 
 from ...exceptions import DataError, KautzTwinError
 from .base import Reading
@@ -422,3 +423,51 @@ class SampleLink:
     def close(self) -> None:  # pragma: no cover - every link defines it
         """Disconnect and stop the transport (idempotent)."""
         raise NotImplementedError
+
+
+def split_url(
+    url: str, scheme: str, what: str, *, default_port: int, min_port: int, shape: str
+) -> tuple[str, int]:
+    """Check a ``SCHEME://HOST:PORT`` address of a plant link and split it.
+
+    Parameters
+    ----------
+    url : str
+        The address.
+    scheme : str
+        The required scheme (``'opc.tcp'``, ``'mqtt'``).
+    what : str
+        What the address is, for the messages (``'endpoint'``, ``'broker'``).
+    default_port : int
+        Port when the address names none.
+    min_port : int
+        Lowest port accepted (0: "pick a free one" is allowed).
+    shape : str
+        End of the message for an address with a path, query, fragment or a low port.
+
+    Returns
+    -------
+    tuple
+        ``(host, port)``.
+
+    Raises
+    ------
+    DataError
+        With a one-line message naming ``what``.
+    """
+    text = str(url).strip()
+    parts = urlsplit(text)
+    if parts.scheme != scheme:
+        raise DataError(f"{what} must look like {scheme}://HOST:PORT, got {text!r}")
+    try:
+        port = parts.port
+    except ValueError:
+        raise DataError(f"{what} {text!r} has an invalid port ({min_port}..65535)") from None
+    host = parts.hostname
+    if not host:
+        raise DataError(f"{what} {text!r} has no host")
+    if parts.path not in ("", "/") or parts.query or parts.fragment or (
+        port is not None and port < min_port
+    ):
+        raise DataError(f"{what} {text!r} must be {shape}")
+    return host, default_port if port is None else int(port)

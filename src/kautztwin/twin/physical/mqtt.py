@@ -42,11 +42,10 @@ import time
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
-from urllib.parse import urlsplit
 
 from ...exceptions import DataError
 from .base import Reading
-from .link import LinkError, SampleLink, _positive
+from .link import LinkError, SampleLink, _positive, split_url
 
 __all__ = ["DEFAULT_BROKER", "MQTTPlant", "default_topics", "parse_broker"]
 
@@ -81,20 +80,8 @@ def parse_broker(url: str) -> tuple[str, int]:
     >>> parse_broker("mqtt://127.0.0.1:1884")
     ('127.0.0.1', 1884)
     """
-    text = str(url).strip()
-    parts = urlsplit(text)
-    if parts.scheme != "mqtt":
-        raise DataError(f"broker must look like mqtt://HOST:PORT, got {text!r}")
-    try:
-        port = parts.port
-    except ValueError:
-        raise DataError(f"broker {text!r} has an invalid port (1..65535)") from None
-    host = parts.hostname
-    if not host:
-        raise DataError(f"broker {text!r} has no host")
-    if parts.path not in ("", "/") or parts.query or parts.fragment or port == 0:
-        raise DataError(f"broker {text!r} must be mqtt://HOST:PORT (port 1..65535), no path")
-    return host, 1883 if port is None else int(port)
+    return split_url(url, "mqtt", "broker", default_port=1883, min_port=1,
+                     shape="mqtt://HOST:PORT (port 1..65535), no path")
 
 
 def default_topics(prefix: str) -> dict[str, str]:

@@ -50,11 +50,10 @@ import time
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
-from urllib.parse import urlsplit
 
 from ...exceptions import DataError
 from .base import Reading
-from .link import LinkError, Outage, SampleLink, _positive
+from .link import LinkError, Outage, SampleLink, _positive, split_url
 
 __all__ = ["NAMESPACE_URI", "LinkError", "OPCUAPlant", "Outage", "parse_endpoint"]
 
@@ -89,20 +88,8 @@ def parse_endpoint(url: str) -> tuple[str, int]:
     >>> parse_endpoint("opc.tcp://127.0.0.1:4841")
     ('127.0.0.1', 4841)
     """
-    text = str(url).strip()
-    parts = urlsplit(text)
-    if parts.scheme != "opc.tcp":
-        raise DataError(f"endpoint must look like opc.tcp://HOST:PORT, got {text!r}")
-    try:
-        port = parts.port
-    except ValueError:
-        raise DataError(f"endpoint {text!r} has an invalid port (0..65535)") from None
-    host = parts.hostname
-    if not host:
-        raise DataError(f"endpoint {text!r} has no host")
-    if parts.path not in ("", "/") or parts.query or parts.fragment:
-        raise DataError(f"endpoint {text!r} must be opc.tcp://HOST:PORT without a path")
-    return host, 4840 if port is None else int(port)
+    return split_url(url, "opc.tcp", "endpoint", default_port=4840, min_port=0,
+                     shape="opc.tcp://HOST:PORT without a path")
 
 
 _NODE_KEYS = ("u", "y", "u_applied", "dt", "speed", "status")
