@@ -200,3 +200,30 @@ def test_optimize_warns_when_a_pole_sticks_at_the_slowest_rate():
     h = np.exp(-t) + 0.2
     with pytest.warns(kt.exceptions.ConvergenceWarning, match="slowest allowed rate"):
         kt.optimize_poles(t, h, [-1.0, -0.5])
+
+
+def test_restart_from_real_poles_converges_where_a_pair_collapses():
+    """A double real optimum: the pair's imaginary part creeps to zero and the budget runs out.
+
+    One simulated hydraulic step test (the drive's three real poles, two of them
+    close) with three poles: the search from the automatic starts ends unconverged
+    on a pair with ``|Im p| / |Re p|`` of a few thousandths; restarted from two real
+    poles it converges to a lower error.
+    """
+    from kautztwin.approx.poles import COLLAPSING_PAIR, real_restart_poles
+    from kautztwin.simulators import simulate_step_tests
+
+    rec = simulate_step_tests(1, random_state=0)
+    t, y = rec.t, rec.y[0] / rec.amplitude
+    plain = kt.optimize_poles(t, y, 3, kind="step")
+    pair = [p for p in plain.basis.poles if p.imag > 0]
+    assert not plain.success and pair and abs(pair[0].imag) <= COLLAPSING_PAIR * abs(pair[0].real)
+    assert real_restart_poles(plain.basis.poles) is not None
+    again = kt.optimize_poles(t, y, 3, kind="step", restart_collapsed=True)
+    assert again.success
+    assert again.ise < plain.ise
+    assert np.all(again.basis.poles.imag == 0)
+    assert again.n_evaluations > plain.n_evaluations
+    # an already converged search is returned as it is
+    ok = kt.optimize_poles(t, y, again.basis, kind="step", restart_collapsed=True)
+    assert ok.success and ok.ise <= again.ise * (1 + 1e-9)

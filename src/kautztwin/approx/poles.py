@@ -16,7 +16,7 @@ approximation error depends on them.  Here both are automatic and vectorised:
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -33,7 +33,7 @@ from ..metrics import fit_percent, ise
 from ._system import as_state_space
 from .model import KautzModel
 
-__all__ = ["PoleOptimization", "optimize_poles", "pole_sensitivity"]
+__all__ = ["PoleOptimization", "optimize_poles", "pole_sensitivity", "real_restart_poles"]
 
 _CHUNK = 2048  # bases per batch: bounds memory at about CHUNK * N * n_samples floats
 
@@ -393,6 +393,7 @@ def optimize_poles(
     kind: str = "impulse",
     max_iter: int = 100,
     tol: float = 1e-10,
+    restart_collapsed: bool = False,
 ) -> PoleOptimization:
     r"""Choose basis poles that minimise the approximation error of one or many records.
 
@@ -420,6 +421,13 @@ def optimize_poles(
         ``max_iter * (n_params + 1)``).
     tol : float, default=1e-10
         ``ftol``, ``xtol`` and ``gtol`` of the solver.
+    restart_collapsed : bool, default=False
+        When the search stops at its budget without converging and a complex pair
+        has collapsed onto the real axis (``|Im p| <= 0.05 |Re p|``: the optimum
+        wants two equal real poles, which the pair parametrisation reaches only
+        slowly), search once more from two real poles in its place and keep the
+        better result (its ``n_evaluations`` counts both searches).  The
+        command-line ``approx --optimize-poles`` turns this on.
 
     Returns
     -------
@@ -447,6 +455,60 @@ def optimize_poles(
     >>> bool(res.fit_percent > 99.99)
     True
     """
+    res = _search(t, h, init, kind, max_iter, tol)
+    if not restart_collapsed or res.success:
+        return res
+    start = real_restart_poles(res.basis.poles)
+    if start is None:
+        return res
+    again = _search(t, h, start, kind, max_iter, tol)
+    if np.sum(again.ise) <= np.sum(res.ise) * (1 + 1e-9):
+        return replace(again, n_evaluations=res.n_evaluations + again.n_evaluations,
+                       initial_basis=res.initial_basis)
+    return res
+
+
+#: a complex pair with |Im p| at most this share of |Re p| is collapsing onto the real axis
+COLLAPSING_PAIR = 0.05
+
+
+def real_restart_poles(poles: ArrayLike) -> list[complex] | None:
+    """Starting poles with every collapsing complex pair split into two real poles.
+
+    Parameters
+    ----------
+    poles : array-like of complex
+        Poles of a basis (conjugate pairs adjacent, as :attr:`KautzBasis.poles` lists them).
+
+    Returns
+    -------
+    list of complex or None
+        The poles with each pair whose ``|Im p| <= COLLAPSING_PAIR * |Re p|`` replaced by
+        the two real poles ``Re p * (1 -+ COLLAPSING_PAIR)``; None when no pair collapses.
+
+    Examples
+    --------
+    >>> real_restart_poles([-1 + 0.01j, -1 - 0.01j, -3])
+    [(-1.05+0j), (-0.95+0j), (-3+0j)]
+    >>> real_restart_poles([-1 + 1j, -1 - 1j]) is None
+    True
+    """
+    out: list[complex] = []
+    changed = False
+    for p in np.asarray(poles, dtype=complex):
+        if p.imag != 0 and abs(p.imag) <= COLLAPSING_PAIR * abs(p.real):
+            out.append(complex(p.real * (1.0 + np.sign(p.imag) * COLLAPSING_PAIR)))
+            changed = True
+        else:
+            out.append(complex(p))
+    return out if changed else None
+
+
+def _search(
+    t: ArrayLike, h: ArrayLike, init: int | ArrayLike | KautzBasis, kind: str, max_iter: int,
+    tol: float,
+) -> PoleOptimization:
+    """One variable-projection search of :func:`optimize_poles` (no restart)."""
     if kind not in ("impulse", "step"):
         raise DataError(f"kind must be 'impulse' or 'step', got {kind!r}")
     t = check_time(t, min_samples=5)
@@ -493,7 +555,7 @@ def optimize_poles(
             "a basis pole ended at the slowest allowed rate (0.01 / record length): the record "
             "is too short to resolve it and it mimics an offset or drift; try fewer poles",
             ConvergenceWarning,
-            stacklevel=2,
+            stacklevel=3,
         )
     c, _ = prob.solve(sol.x)
     basis = KautzBasis._from_blocks(kinds, prob.params(sol.x))

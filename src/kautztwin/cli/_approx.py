@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -96,45 +95,13 @@ def register(subparsers: argparse._SubParsersAction, common: argparse.ArgumentPa
     p.set_defaults(run=run)
 
 
-#: a complex pair with |Im p| below this share of |Re p| is a collapsing pair (see _restart)
-_COLLAPSING_PAIR = 0.05
-
-
-def _real_restart(poles: np.ndarray) -> list[complex] | None:
-    """Starting poles with every collapsing pair split into two real poles, or None if none."""
-    out: list[complex] = []
-    changed = False
-    for p in poles:
-        if p.imag != 0 and abs(p.imag) <= _COLLAPSING_PAIR * abs(p.real):
-            out.append(complex(p.real * (1.0 + np.sign(p.imag) * _COLLAPSING_PAIR)))
-            changed = True
-        else:
-            out.append(complex(p))
-    return out if changed else None
-
-
 def _optimize(args: argparse.Namespace, t: np.ndarray, y: np.ndarray) -> Any:
-    """optimize_poles, restarted once from real poles when a pair collapsed unconverged.
-
-    The variable-projection search parametrises a complex pair by its real and
-    imaginary parts; when the optimum is a double real pole the imaginary part
-    creeps towards zero and the budget runs out.  Starting again from two real
-    poles there converges in a few dozen evaluations.
-    """
+    """optimize_poles, restarted once from real poles when a pair collapsed unconverged."""
     import kautztwin
 
     kwargs = {} if args.max_iter is None else {"max_iter": args.max_iter}
-    res = kautztwin.optimize_poles(t, y, args.optimize_poles, kind=args.kind, **kwargs)
-    if res.success:
-        return res
-    start = _real_restart(np.asarray(res.basis.poles))
-    if start is None:
-        return res
-    again = kautztwin.optimize_poles(t, y, start, kind=args.kind, **kwargs)
-    if again.ise <= res.ise * (1 + 1e-9):
-        return replace(again, n_evaluations=res.n_evaluations + again.n_evaluations,
-                       initial_basis=res.initial_basis)
-    return res
+    return kautztwin.optimize_poles(t, y, args.optimize_poles, kind=args.kind,
+                                    restart_collapsed=True, **kwargs)
 
 
 def _fit(args: argparse.Namespace, t: np.ndarray, y: np.ndarray) -> tuple[Any, dict[str, Any], str]:
