@@ -9,8 +9,9 @@ dependency-free Hildreth iteration); :func:`solve_mpc` is the one-shot form and
 
 Modules: :mod:`~kautztwin.mpc.plant` (the plant model), :mod:`~kautztwin.mpc.laguerre`
 (discrete design), :mod:`~kautztwin.mpc.continuous` (continuous design),
-:mod:`~kautztwin.mpc.prediction`, :mod:`~kautztwin.mpc.constraints` and
-:mod:`~kautztwin.mpc.solve` (the parts of the QP), :mod:`~kautztwin.mpc.problem`
+:mod:`~kautztwin.mpc.prediction`, :mod:`~kautztwin.mpc.constraints`,
+:mod:`~kautztwin.mpc.solve` and :mod:`~kautztwin.mpc.lean` (the parts of the QP and
+the per-sample move), :mod:`~kautztwin.mpc.problem`
 (:class:`MPCProblem`), :mod:`~kautztwin.mpc.results`, :mod:`~kautztwin.mpc.closed_loop`
 and :mod:`~kautztwin.mpc.hildreth`.
 """

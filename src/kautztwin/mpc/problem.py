@@ -3,15 +3,16 @@ r"""Constrained Laguerre/Kautz MPC as a QP that is built once and re-solved fast
 :class:`MPCProblem` is the facade that wires the parts: the prediction and cost
 maps (:mod:`kautztwin.mpc.prediction`), the constraint rows and their bounds'
 affine map from ``(x, u_prev)`` (:mod:`kautztwin.mpc.constraints`, kautz-math.md
-6.3) and the warm-started solver with its fallbacks and lean move path
-(:mod:`kautztwin.mpc.solve`).  Each :meth:`MPCProblem.solve` then costs a few
-matrix-vector products and one warm-started DAQP solve.  ``full_horizon=True``
+6.3), the warm-started solver with its fallbacks (:mod:`kautztwin.mpc.solve`)
+and the lean per-sample move (:mod:`kautztwin.mpc.lean`).  Each
+:meth:`MPCProblem.solve` then costs a few matrix-vector products and one
+warm-started DAQP solve.  ``full_horizon=True``
 gives the classical MPC with one decision variable per step (the baseline that
 the basis parameterisation is compared with).
 
-Size: the class runs to about 480
+Size: the class runs to about 500
 lines because its public methods carry their full numpydoc documentation; the
-work itself is in the three modules above.
+work itself is in the modules above.
 """
 
 from __future__ import annotations
@@ -203,6 +204,7 @@ class MPCProblem:
             max_iter=int(max_iter),
             tol=float(tol),
         )
+        self._lean = self._qp.lean
 
     # ------------------------------------------------------------------ properties
     @property
@@ -439,15 +441,25 @@ class MPCProblem:
     def move(self, x: ArrayLike, setpoint: ArrayLike = 0.0, *, u_prev: ArrayLike = 0.0) -> MPCMove:
         r"""Lean solve for a control loop: the first move only.
 
-        The same QP as :meth:`solve`, with the same warm start (the two may
-        be mixed), but without the plan over the horizon, the predicted cost
-        and the result object: state, set-point and previous input go through
-        one precomputed matrix-vector product into the solver's linear term
-        and bounds, and only :math:`\Delta u(k) = L(0)^T\eta` comes back.  When
-        the constraints cannot all be met (rare) it falls back to
-        :meth:`solve` for the compromise, so the move is always the one
-        :meth:`solve` would apply.  The Hildreth solver always goes through
-        :meth:`solve`.
+        The same QP as :meth:`solve`, without the plan over the horizon, the
+        predicted cost and the result object, and written for a per-sample
+        loop (:mod:`kautztwin.mpc.lean`): the QP is posed in the deviation from
+        the unconstrained optimum, so state, set-point and previous input go
+        through one precomputed matrix-vector product into the unconstrained
+        move and DAQP's bounds; when that optimum meets every constraint row
+        (often, away from the limits) it is the solution and DAQP is not
+        called; else DAQP is updated and solved in place.  Only
+        :math:`\Delta u(k) = L(0)^T\eta` comes back.  When the constraints
+        cannot all be met (rare) it falls back to :meth:`solve` for the
+        compromise, so the move is always the one :meth:`solve` would apply
+        (to the solver's tolerance; the tests hold the two to 1e-9).  The
+        Hildreth solver always goes through :meth:`solve`.
+
+        The arguments are not validated on this path beyond what costs
+        nothing: a wrong shape or a NaN/inf sends the call to :meth:`solve`,
+        which names the problem.  :meth:`move` and :meth:`solve` keep separate
+        DAQP warm starts and may be mixed (the QP is strictly convex: its
+        solution does not depend on the start).
 
         Parameters
         ----------
@@ -461,6 +473,8 @@ class MPCProblem:
         Returns
         -------
         MPCMove
+            ``solver_time`` and ``iterations`` are 0 on a sample where the
+            unconstrained optimum was the solution (DAQP not called).
 
         Raises
         ------
@@ -482,9 +496,11 @@ class MPCProblem:
         >>> mv.success, round(float(mv.u[0]), 6)
         (True, 0.5)
         """
-        mv = self._qp.move(x, setpoint, u_prev)
-        if mv is not None:
-            return mv
+        lean = self._lean
+        if lean is not None:
+            mv = lean(x, setpoint, u_prev)
+            if mv is not None:
+                return mv
         return self._move_from(self.solve(x, setpoint, u_prev=u_prev))
 
     @staticmethod

@@ -6,9 +6,8 @@ multipliers.  When the constraints cannot all be met it returns a compromise:
 the output limits made soft (least violation) when the input limits alone are
 feasible, else the unconstrained first move clipped to the input and rate
 limits.  :meth:`QPSolver.move` is the lean path of
-:meth:`MPCProblem.move <kautztwin.mpc.MPCProblem.move>`: one precomputed
-matrix-vector product from ``[x; u_prev; r; 1]`` to the linear term and the
-bounds, the solver call and ``du = L(0)^T eta``.
+:meth:`MPCProblem.move <kautztwin.mpc.MPCProblem.move>`, kept in
+:mod:`kautztwin.mpc.lean`.
 """
 
 from __future__ import annotations
@@ -21,6 +20,7 @@ from numpy.typing import ArrayLike, NDArray
 from ..exceptions import DataError
 from .constraints import _INF, ConstraintRows, DAQPRows, Limits
 from .hildreth import hildreth
+from .lean import LeanMove
 from .prediction import HorizonMaps
 from .results import MPCMove
 
@@ -62,6 +62,12 @@ class QPSolver:
     max_iter : int
     tol : float
         Checked solver settings (see :class:`~kautztwin.mpc.MPCProblem`).
+
+    Attributes
+    ----------
+    lean : LeanMove or None
+        The lean per-sample move (``None`` for Hildreth with constraints: its
+        moves go through :meth:`solve`).
     """
 
     def __init__(
@@ -95,7 +101,20 @@ class QPSolver:
             self._setup_daqp()
         if self._m and solver == "hildreth":
             self._h_rows, self._h_sign, self._h_M = rows.hildreth_rows()
-        self._setup_lean()
+        self.lean: LeanMove | None = None
+        if not self._m or solver == "daqp":  # Hildreth: move() goes through solve()
+            self.lean = LeanMove(
+                maps,
+                rows,
+                self._drows if self._m else None,
+                L0,
+                n_states,
+                n_inputs,
+                n_outputs,
+                warm_start=warm_start,
+                max_iter=max_iter,
+                tol=tol,
+            )
 
     # ------------------------------------------------------------------ DAQP
     def _setup_daqp(self) -> None:
@@ -140,86 +159,15 @@ class QPSolver:
         return self._daqp_soft
 
     # ------------------------------------------------------------------ lean path
-    def _setup_lean(self) -> None:
-        """One matrix that maps ``v = [x; u_prev; r; 1]`` to ``[F; upper; lower]`` at once.
-
-        :meth:`move` then costs one matrix-vector product, the solver call
-        and ``du = L(0)^T eta``.  Without constraints the rows give the
-        unconstrained optimum ``eta = K_x (x - x_s)`` directly.
-        """
-        n, n_x, N = self._n, self._n_x, self._N
-        n_u, n_y = self._n_u, self._n_y
-        Kx, Fx = self._maps.Kx, self._maps.Fx
-        n_v = n + n_u + n_y + 1
-        r_cols = slice(n + n_u, n + n_u + n_y)
-        if self._m == 0:
-            W = np.zeros((N, n_v))
-            W[:, :n] = Kx
-            W[:, r_cols] = -Kx[:, n_x:]
-            self._lean_split = (N, N)
-        elif self._solver == "daqp":
-            rows = self._drows
-            mp = rows.perm.size
-            W = np.zeros((N + 2 * mp, n_v))
-            W[:N, :n] = Fx
-            W[:N, r_cols] = -Fx[:, n_x:]
-            W[N : N + mp, : n + n_u] = rows.G
-            W[N : N + mp, -1] = rows.hi0
-            W[N + mp :, : n + n_u] = rows.G
-            W[N + mp :, -1] = rows.lo0
-            self._lean_split = (N, N + mp)
-        else:  # Hildreth: move() goes through solve()
-            W = np.zeros((0, n_v))
-            self._lean_split = (0, 0)
-        self._lean_W = W
-        self._lean_v = np.zeros(n_v)
-        self._lean_v[-1] = 1.0
-        self._lean_out = np.empty(W.shape[0])
-        self._lean_L0 = np.ascontiguousarray(self._L0)
-        self._lean_slices = (slice(0, n), slice(n, n + n_u), r_cols)
-
     def move(self, x: ArrayLike, setpoint: ArrayLike, u_prev: ArrayLike) -> MPCMove | None:
         """The first move by the lean path, or ``None`` where the full solve must decide.
 
         ``None`` means: Hildreth, arguments that need the full path's checks and messages,
         or a solve that did not meet every constraint (the full path finds the compromise).
+        See :class:`~kautztwin.mpc.lean.LeanMove`.
         """
-        if self._m and self._daqp is None:  # Hildreth, or no row DAQP could use
-            return None
-        v = self._lean_v
-        sx, su, sr = self._lean_slices
-        xa = np.asarray(x, dtype=float)
-        if xa.size != self._n:  # a scalar would broadcast; the full path names the error
-            return None
-        try:
-            v[sx] = xa
-            v[su] = u_prev
-            v[sr] = setpoint
-        except (ValueError, TypeError):
-            # the full path names the offending argument
-            return None
-        if not np.isfinite(v).all():
-            return None
-        out = np.dot(self._lean_W, v, out=self._lean_out)
-        a, b = self._lean_split
-        iterations, solver_time, status = 0, 0.0, 0
-        if self._m == 0:
-            eta = out
-        else:
-            model = self._daqp
-            if self._warm:
-                model.update(f=out[:a], bupper=out[a:b], blower=out[b:])
-            else:
-                model.update(f=out[:a], bupper=out[a:b], blower=out[b:], sense=self._drows.sense0)
-            eta, _, status, info = model.solve()
-            if status != 1 or (
-                self._drows.zero_idx.size
-                and self._drows.zero_row_violation(v[: sx.stop + self._n_u]) > 0.0
-            ):
-                return None
-            iterations, solver_time = info["iterations"], info["solve_time"]
-        du = eta @ self._lean_L0
-        return MPCMove(du, v[su] + du, True, status, iterations, solver_time)
+        lean = self.lean
+        return None if lean is None else lean(x, setpoint, u_prev)
 
     # ------------------------------------------------------------------ solve
     def solve(
