@@ -15,7 +15,8 @@ SRC = Path(__file__).resolve().parents[1] / "src" / "kautztwin"
 
 # the layers, bottom to top: a layer imports only from layers below it and from the shared
 # modules beside them
-LAYERS = ["basis", "approx", "ident", "nn", "mpc", "twin", "service", "experiments", "cli"]
+LAYERS = ["basis", "approx", "ident", "nn", "export", "mpc", "twin", "service", "experiments",
+          "cli"]
 # modules beside the layers, used by all; they import only from each other and from the
 # lowest layers (basis, approx), never from ident upwards
 SHARED = {"_validation", "_quadrature", "_json", "exceptions", "metrics", "plotting", "data",
