@@ -7,6 +7,7 @@ served by a real uvicorn on a free loopback port.
 
 import json
 import math
+import socket
 import threading
 import time
 import warnings
@@ -56,10 +57,14 @@ def _wait(pred, timeout=30.0, what="condition"):
 
 @pytest.fixture(scope="module")
 def live(tmp_path_factory):
-    """A running twin with the API attached (token set, no rate limit), and a client."""
+    """A running twin with the API attached (token set, no rate limit), and a client.
+
+    The API is also served by uvicorn on a free loopback port (``svc.api.url``: the
+    WebSocket tests); the ``TestClient`` drives the same app in process.
+    """
     svc = TwinService(_config(tmp_path_factory.mktemp("api")))
     svc.build()
-    svc.api = ApiServer(svc, token=TOKEN, rate_limit=0)
+    svc.api = ApiServer(svc, bind="127.0.0.1:0", token=TOKEN, rate_limit=0)
     th = threading.Thread(target=svc.run, daemon=True)
     th.start()
     client = TestClient(svc.api.app)
@@ -109,14 +114,25 @@ def test_models_and_one_model(live):
     ("/models/1?format=xml", 422, "format"),
     ("/history?start=5&end=1", 422, "end"),
     ("/history?signals=y,bogus", 422, "signals"),
+    ("/history?signals=y,predictions", 422, "signals"),
+    ("/history?signals=,", 422, "signals"),
+    ("/history?start=nan", 422, "start"),
+    ("/history?end=inf", 422, "end"),
+    ("/history?start=abc", 422, "start"),
+    ("/history?after=-2", 422, "after"),
     ("/history?limit=0", 422, "limit"),
     ("/history?limit=x", 422, "limit"),
     ("/history?format=xml", 422, "format"),
     ("/events?after=-3", 422, "after"),
+    ("/events?limit=0", 422, "limit"),
+    ("/recent?since=-1", 422, "since"),
+    ("/recent?limit=abc", 422, "limit"),
+    ("/stream?period=0", 422, "period"),
+    ("/stream?max_messages=0", 422, "max_messages"),
 ])
 def test_bad_queries_are_4xx_naming_the_field(live, path, status, field):
     _, c = live
-    r = c.get(path)
+    r = c.get(path, headers=AUTH)
     assert r.status_code == status, r.text
     assert field in r.json()["message"]
     assert c.get("/health").json()["running"]
@@ -135,6 +151,72 @@ def test_history_json_csv_and_paging(live):
     lines = r.text.strip().splitlines()
     assert r.headers["content-type"].startswith("text/csv") and r.headers["x-next"] == "4"
     assert lines[0] == "k,t,u,y" and len(lines) == 6 and lines[1].startswith("0,0.0,")
+
+
+def _floats(values):
+    return np.array([np.nan if v is None else v for v in values], dtype=float)
+
+
+def test_history_serves_the_twins_predictions_and_setpoints(live):
+    """#12: ``prediction`` and ``setpoint`` of /history are what the loop used at each sample.
+
+    The oracle is the loop's own per-sample arrays (its ``y_pred`` and ``setpoint``), not the
+    store the API reads: the stored prediction of sample k (made at k - 1) and the set-point
+    rebuilt from the run's configuration and its ``api-setpoint`` events must equal them.
+    """
+    svc, c = live
+    arrays = svc.twin._record.arrays
+    n_ident = svc.twin.config.n_ident  # the closed loop's first sample
+    _wait(lambda: c.get("/state").json()["k"] > n_ident + 150, 30, "closed-loop samples")
+    r = c.post("/setpoint", json={"value": 98.5}, headers=AUTH)
+    assert r.status_code == 200, r.text
+    k_from = r.json()["k_from"]
+    try:
+        _wait(lambda: c.get("/state").json()["committed"] > k_from + 300, 30, "commits")
+        after = k_from - 101
+        page = c.get(f"/history?signals=k,y,prediction,setpoint&after={after}&limit=200").json()
+        cols = page["signals"]
+        k = np.array(cols["k"])
+        assert page["n"] == 200 and k[0] == k_from - 100 and page["next"] == k[-1]
+        pred, sp = _floats(cols["prediction"]), _floats(cols["setpoint"])
+        np.testing.assert_array_equal(pred, arrays["y_pred"][k])  # exact: the stored floats
+        np.testing.assert_array_equal(sp, arrays["setpoint"][k])
+        assert np.all(sp[k >= k_from] == 98.5) and not np.any(sp[k < k_from] == 98.5)
+        assert np.isfinite(pred).all()
+        # the identification phase: no set-point in force, no prediction made (the twin's
+        # first model comes at its end; the loop's arrays hold values filled in afterwards)
+        first = c.get(f"/history?signals=k,prediction,setpoint&limit={n_ident}").json()
+        assert first["signals"]["setpoint"] == [None] * n_ident
+        assert first["signals"]["prediction"] == [None] * n_ident
+        # CSV: the same numbers
+        text = c.get(f"/history?signals=k,prediction,setpoint&after={after}&limit=200"
+                     "&format=csv").text.strip().splitlines()
+        assert text[0] == "k,prediction,setpoint" and len(text) == 201
+        rows = np.array([[float(v) if v else np.nan for v in line.split(",")]
+                         for line in text[1:]])
+        np.testing.assert_array_equal(rows[:, 0], k)
+        np.testing.assert_array_equal(rows[:, 1], pred)
+        np.testing.assert_array_equal(rows[:, 2], sp)
+        # the Python client: float arrays, NaN where missing
+        with TwinClient(svc.api.url) as tc:
+            h = tc.history(signals="k,prediction,setpoint", end=float(arrays["t"][k[-1]]),
+                           page=4000)
+        assert h["prediction"].dtype == float and h["k"].dtype == np.int64
+        np.testing.assert_array_equal(h["k"], np.arange(k[-1] + 1))
+        closed = slice(n_ident, k[-1] + 1)
+        np.testing.assert_array_equal(h["prediction"][closed], arrays["y_pred"][closed])
+        np.testing.assert_array_equal(h["setpoint"], arrays["setpoint"][: k[-1] + 1])
+        assert np.isnan(h["prediction"][:n_ident]).all()
+    finally:
+        c.post("/setpoint", json={"value": 100.0}, headers=AUTH)
+
+
+def test_health_reports_the_loops_pace(live):
+    _, c = live
+    loop = c.get("/health").json()["loop"]
+    assert loop["samples"] > 10 and loop["period_ms"] == pytest.approx(2.0)  # dt 0.02 s, x10
+    assert 0 < loop["interval_ms_p50"] <= loop["interval_ms_p99"] <= loop["interval_ms_max"]
+    assert loop["late"] >= 0 and loop["behind_ms_max"] >= 0
 
 
 def test_events(live):
@@ -262,6 +344,35 @@ def test_writes_need_the_token(live, method, path, body, headers):
         assert not svc.twin.updater.pending or svc.twin.updater.counts["attempts"] == attempts
 
 
+def test_every_endpoint_over_the_loopback_port(live):
+    """The happy path of every endpoint through the real server (uvicorn on 127.0.0.1:0)."""
+    svc, _ = live
+    with httpx.Client(base_url=svc.api.url, timeout=20) as h:
+        for path in ("/health", "/state", "/models", "/models/1", "/events", "/recent?limit=5",
+                     "/history?signals=k,t,u,y,flags,prediction,setpoint&limit=5",
+                     "/openapi.json"):
+            r = h.get(path)
+            assert r.status_code == 200 and r.headers["content-type"].startswith(
+                "application/json"), (path, r.text)
+        assert h.get("/history?format=csv&limit=3").text.startswith("k,t,u,y,flags\n")
+        assert h.get("/models/1?format=file").json()["version"] == 1
+        for path in ("/", "/docs", "/static/dashboard.js", "/static/dashboard.css",
+                     "/static/LICENSE.txt"):
+            assert h.get(path).status_code == 200, path
+        with h.stream("GET", "/stream?max_messages=1&period=0.05", headers=AUTH) as r:
+            assert r.status_code == 200
+            assert any(line.startswith("data: ") for line in r.iter_lines())
+        r = h.post("/whatif", json={"setpoint": 100.0, "steps": 50}, headers=AUTH)
+        assert r.status_code == 200 and len(r.json()["y"]) == 50
+        r = h.post("/setpoint", json={"value": 100.0}, headers=AUTH)
+        assert r.status_code == 200 and r.json()["setpoint"] == 100.0
+        r = h.post("/reidentify", json={"reason": "over the port"}, headers=AUTH)
+        if r.status_code == 409:  # one is running already: wait for it, then ask again
+            _wait(lambda: not svc.twin.updater.pending, 30, "the attempt in flight")
+            r = h.post("/reidentify", json={"reason": "over the port"}, headers=AUTH)
+        assert r.status_code == 200 and r.json()["scheduled"], r.text
+
+
 def test_reads_need_no_token(live):
     _, c = live
     for path in ("/health", "/state", "/models", "/history?limit=1", "/events", "/", "/recent"):
@@ -300,6 +411,76 @@ def test_stream_sends_samples(live):
     data = [json.loads(line[6:]) for line in lines if line.startswith("data: ")]
     batches = [d for d in data if isinstance(d, list)]
     assert batches and {"k", "y", "y_pred", "u", "setpoint", "seq"} <= set(batches[0][0])
+
+
+# ---------------------------------------------------------------------- WebSocket stream
+def _ws(svc, query="", headers=None):
+    from websockets.sync.client import connect
+
+    url = svc.api.url.replace("http://", "ws://") + "/stream/ws" + query
+    return connect(url, additional_headers=headers or {}, open_timeout=10, close_timeout=5)
+
+
+def _ws_messages(ws, n_max=200, timeout=10.0):
+    """Messages until the server closes (at most ``n_max``); and the close frame."""
+    from websockets.exceptions import ConnectionClosed
+
+    out = []
+    try:
+        while len(out) < n_max:
+            out.append(json.loads(ws.recv(timeout=timeout)))
+    except ConnectionClosed as exc:
+        return out, exc.rcvd
+    raise AssertionError(f"the server did not close after {n_max} messages")
+
+
+@pytest.mark.parametrize("headers", [{}, {"Authorization": "Bearer wrong-token"},
+                                     {"Authorization": TOKEN}, {"Authorization": "Basic x"}],
+                         ids=["missing", "wrong", "no-scheme", "basic"])
+def test_ws_stream_needs_the_token(live, headers):
+    """Without the token the WebSocket closes with 1008 (policy violation), nothing sent."""
+    svc, _ = live
+    with _ws(svc, "?period=0.02", headers) as ws:
+        messages, close = _ws_messages(ws)
+    assert messages == []
+    assert close.code == 1008 and "token" in close.reason
+
+
+def test_ws_stream_sends_samples_then_closes(live):
+    svc, _ = live
+    with _ws(svc, "?max_messages=3&period=0.05", AUTH) as ws:
+        messages, close = _ws_messages(ws)
+    assert close.code == 1000 and len(messages) == 3
+    batches = [m["samples"] for m in messages if m["type"] == "samples"]
+    assert batches and {"k", "y", "y_pred", "u", "setpoint", "version", "seq"} <= set(batches[0][0])
+    ks = [s["k"] for b in batches for s in b]
+    assert ks == list(range(ks[0], ks[0] + len(ks)))  # consecutive samples, none twice
+    with _ws(svc, f"?since={batches[-1][-1]['seq']}&max_messages=1", AUTH) as ws:
+        (later,), _ = _ws_messages(ws)
+    assert later["samples"][0]["k"] == ks[-1] + 1  # resumes after the last seq seen
+
+
+def test_ws_stream_carries_api_events(live):
+    svc, c = live
+    with _ws(svc, "?period=0.05", AUTH) as ws:
+        assert c.post("/setpoint", json={"value": 100.0}, headers=AUTH).status_code == 200
+        end = time.monotonic() + 10
+        seen = None
+        while seen is None and time.monotonic() < end:
+            m = json.loads(ws.recv(timeout=10))
+            if m["type"] == "event" and m["event"]["kind"] == "api-setpoint":
+                seen = m["event"]
+    assert seen is not None and seen["source"] == "api" and "100" in seen["message"]
+
+
+@pytest.mark.parametrize("query, field", [("?period=0", "period"), ("?period=x", "period"),
+                                          ("?since=-1", "since"), ("?max_messages=0",
+                                                                   "max_messages")])
+def test_ws_stream_bad_query_closes_naming_the_field(live, query, field):
+    svc, _ = live
+    with _ws(svc, query, AUTH) as ws:
+        messages, close = _ws_messages(ws)
+    assert messages == [] and close.code == 4422 and field in close.reason
 
 
 def test_dashboard_is_served(live):
@@ -379,6 +560,11 @@ def test_real_uvicorn_on_a_free_loopback_port(tmp_path):
         assert url.startswith("http://127.0.0.1:")
         with httpx.Client(base_url=url, timeout=10) as c:
             assert c.get("/health").json()["status"] == "ok"
+            # the listening socket names TCP, so that asyncio turns Nagle off on each
+            # connection (#12 load benchmark: without it every answer waited ~40 ms for the
+            # client's delayed ACK)
+            (listening,) = svc.api._server.servers[0].sockets
+            assert listening.proto == socket.IPPROTO_TCP
             _wait(lambda: c.get("/state").json().get("phase") == "closed-loop", 60, "closed loop")
             assert c.post("/setpoint", json={"value": 99.0}).status_code == 401
             r = c.post("/setpoint", json={"value": 99.0}, headers=AUTH)

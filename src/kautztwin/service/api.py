@@ -7,21 +7,33 @@ uvicorn in a thread, started and stopped with the service
 (``kautztwin twin serve --http 127.0.0.1:8000``).  The endpoints (reference and
 curl examples in ``docs/api-http.md``; OpenAPI at ``/docs``):
 
-* reads: ``GET /health``, ``/state``, ``/models``, ``/models/{version}``
-  (``?format=file``: the model file), ``/history`` (JSON or CSV, paged),
-  ``/events``, and ``/`` the dashboard;
+* reads: ``GET /health`` (with the loop's pace), ``/state``, ``/models``,
+  ``/models/{version}`` (``?format=file``: the model file), ``/history`` (JSON
+  or CSV, paged: samples, the twin's predictions, set-points), ``/events``,
+  ``/recent``, and ``/`` the dashboard;
 * ``POST /whatif``: the current model's response to a planned input (or a
   set-point step) from the current state, with a band from its uncertainty;
 * writes: ``POST /setpoint`` (within the output limits; from the next sample),
   ``POST /reidentify``;
-* ``GET /stream``: server-sent events of samples and events.
+* ``GET /stream``: server-sent events of samples and events; ``WS /stream/ws``
+  the same as WebSocket messages.
 
 Security: the server binds 127.0.0.1 unless told otherwise, and a bind off
 the loopback interface needs a token (checked by the configuration).  With a
-token, the writes, ``/whatif`` and ``/stream`` need ``Authorization: Bearer
-TOKEN`` (401 otherwise, and nothing changes); writes and what-ifs are
-rate-limited per client (429), and every write is logged in the store as an
-``api-*`` event with who and when.
+token, the writes, ``/whatif`` and both streams need ``Authorization: Bearer
+TOKEN`` (401 otherwise, and nothing changes; the WebSocket closes with 1008
+before sending anything); writes and what-ifs are rate-limited per client
+(429), and every write is logged in the store as an ``api-*`` event with who
+and when.
+
+The sample loop shares the process (and its interpreter lock) with the
+server: the cheap reads are coroutines (no hand-over to worker threads),
+``/history`` pages come from read-only connections of their own
+(:class:`~.history_reader.HistoryReader`, never the store's lock), answers are
+serialised at once, and :meth:`ApiServer.start` freezes the objects that exist
+before the loop starts, so that the full garbage collections the handlers'
+garbage triggers stay short (they walked ~10^5 objects, 0.1-0.2 s holding the
+lock, and made the loop late).  ``benchmarks/bench_api_load.py`` measures it.
 
 Size: over 600 lines because every endpoint's request and response shape lives
 here with its docstring (the OpenAPI page is generated from them); the state
@@ -30,7 +42,9 @@ the endpoints read and the jobs they hand to the sample loop are in
 """
 
 import asyncio
+import contextlib
 import csv
+import gc
 import hmac
 import io
 import json
@@ -44,22 +58,22 @@ from importlib import resources
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from fastapi import Depends, FastAPI, Query, Request
+from fastapi import Depends, FastAPI, Query, Request, WebSocket
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import HTMLResponse, JSONResponse, Response, StreamingResponse
 from pydantic import BaseModel, ConfigDict, Field, model_validator
+from starlette.requests import HTTPConnection
+from starlette.websockets import WebSocketDisconnect
 
 from ..exceptions import DataError
-from ..twin.history import Measurements
 from .config import parse_bind
+from .history_reader import HISTORY_SIGNALS, HistoryReader
 from .twin_view import ApiError, RateLimiter, TwinView, _num
 
 __all__ = ["ApiServer", "ReidentifyRequest", "SetpointRequest", "WhatIfRequest", "create_app"]
 
 _logger = logging.getLogger("kautztwin.service")
 
-#: signals of ``GET /history`` (the store's measurements)
-HISTORY_SIGNALS = ("k", "t", "u", "y", "flags")
 #: most samples of one ``/history`` page and of one what-if
 MAX_PAGE = 10_000
 MAX_WHATIF = 5_000
@@ -123,6 +137,30 @@ class WhatIfRequest(BaseModel):
 def _field_error(field: str, message: str, status: int = 422) -> JSONResponse:
     return JSONResponse({"detail": [{"loc": ["body", field], "msg": message}],
                          "message": f"{field}: {message}"}, status_code=status)
+
+
+def _json(obj: Any) -> Response:
+    """A JSON answer serialised at once (no per-element encoding: pages are large)."""
+    try:
+        text = json.dumps(obj, allow_nan=False, separators=(",", ":"))
+    except ValueError:  # a NaN somewhere: null, as everywhere in the API
+        text = json.dumps(_finite(obj), allow_nan=False, separators=(",", ":"))
+    return Response(text, media_type="application/json")
+
+
+def _finite(obj: Any) -> Any:
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_finite(v) for v in obj]
+    return obj
+
+
+def _nums(a: Any) -> list[float | None]:
+    """A float array as a JSON-ready list (``None`` for NaN and infinities)."""
+    return [v if math.isfinite(v) else None for v in np.asarray(a, dtype=float).tolist()]
 
 
 def _query_error(field: str, message: str) -> JSONResponse:
@@ -271,7 +309,7 @@ def create_app(view: TwinView, *, token: str | None = None,
         return {"who": f"{host} ({auth})", "client": host, "auth": auth,
                 "when": datetime.now(UTC).isoformat(timespec="milliseconds")}
 
-    def _authorised(request: Request) -> None:
+    def _authorised(request: HTTPConnection) -> None:
         if token is None:
             return
         header = request.headers.get("authorization", "")
@@ -296,6 +334,27 @@ def create_app(view: TwinView, *, token: str | None = None,
                                 "minute per client")
         return who
 
+    reads: dict[str, Any] = {"reader": None, "closed": False}
+    reads_lock = threading.Lock()
+
+    def _reader(history: Any) -> HistoryReader:
+        """The reader of the twin's store (closed with the server: then 503)."""
+        with reads_lock:
+            if reads["closed"]:
+                raise ApiError(503, "the service is stopping")
+            if reads["reader"] is None or reads["reader"].history is not history:
+                reads["reader"] = HistoryReader(history)
+            return reads["reader"]
+
+    def _close_reads() -> None:
+        with reads_lock:
+            reads["closed"] = True
+            reader, reads["reader"] = reads["reader"], None
+        if reader is not None:
+            reader.close()
+
+    app.state.close_reads = _close_reads
+
     def _store() -> tuple[Any, int | None]:
         """The store and the run (``None`` before the run is opened: empty answers)."""
         twin = service.twin
@@ -307,16 +366,18 @@ def create_app(view: TwinView, *, token: str | None = None,
         _logger.info(kind, extra={"event": kind, "fields": {"who": who["who"], **fields}})
 
     # ------------------------------------------------------------------ reads
-    @app.get("/health", tags=["read"])
-    def health() -> dict[str, Any]:
-        """Liveness: whether the sample loop runs, and where it is."""
+    # cheap reads are coroutines: served on the event loop, no hand-over to a worker thread
+    @app.get("/health", tags=["read"], response_model=None)
+    async def health() -> Response:
+        """Liveness: whether the sample loop runs, where it is, and whether it keeps its pace."""
         latest = view.latest()
-        return {"status": "ok", "running": view.running, "k": latest.get("k"),
-                "uptime_s": time.time() - view.started,
-                "run_id": None if service.twin is None else service.twin.run_id}
+        return _json({"status": "ok", "running": view.running, "k": latest.get("k"),
+                      "uptime_s": time.time() - view.started,
+                      "run_id": None if service.twin is None else service.twin.run_id,
+                      "loop": view.loop_timing()})
 
-    @app.get("/state", tags=["read"])
-    def state() -> dict[str, Any]:
+    @app.get("/state", tags=["read"], response_model=None)
+    async def state() -> Response:
         """The latest sample: measured y, input u, set-point, twin prediction, fit, version."""
         latest = view.latest()
         twin = service.twin
@@ -334,7 +395,7 @@ def create_app(view: TwinView, *, token: str | None = None,
             out.update(run_id=twin.run_id, dt=cfg.dt, n_samples=cfg.n_samples,
                        controlled=cfg.controlled,
                        setpoint_limits=[_num(lo), _num(hi)])
-        return out
+        return _json(out)
 
     @app.get("/models", tags=["read"])
     def models() -> list[dict[str, Any]]:
@@ -373,37 +434,34 @@ def create_app(view: TwinView, *, token: str | None = None,
         return out
 
     @app.get("/history", tags=["read"], response_model=None)
-    def history_(
-        signals: str = Query("k,t,u,y,flags", description="comma-separated: k,t,u,y,flags"),
+    async def history_(
+        signals: str = Query("k,t,u,y,flags", description="comma-separated: "
+                             + ",".join(HISTORY_SIGNALS)),
         start: float | None = Query(None, description="first time, plant s"),
         end: float | None = Query(None, description="last time, plant s"),
         limit: int = Query(1000, ge=1, le=MAX_PAGE),
         after: int = Query(-1, ge=-1, description="page cursor: samples with k > after"),
         format: Literal["json", "csv"] = "json",
-    ) -> dict[str, Any] | Response:
-        """Stored samples, paged by ``after`` (the ``next`` of the previous page)."""
+    ) -> Response:
+        """Stored samples, the twin's predictions and set-points, paged by ``after``."""
         names = [s.strip() for s in signals.split(",") if s.strip()]
         bad = [s for s in names if s not in HISTORY_SIGNALS]
         if bad or not names:
             return _query_error("signals", f"unknown signal {bad[0] if bad else '(none)'!r}; "
                                            f"use {', '.join(HISTORY_SIGNALS)}")
+        for field, value in (("start", start), ("end", end)):
+            if value is not None and not math.isfinite(value):
+                return _query_error(field, f"{field} must be a finite time, got {value}")
         if start is not None and end is not None and end < start:
             return _query_error("end", f"end ({end:g}) is before start ({start:g})")
         history, run_id = _store()
         if history is None:
-            m = Measurements([], [], [], [], [])
+            cols: dict[str, Any] = {s: np.empty(0) for s in names}
+            nxt = None
         else:
-            m = history.measurements(run_id, since=after if after >= 0 else None)
-        mask = np.ones(len(m), dtype=bool)
-        if start is not None:
-            mask &= m.t >= start
-        if end is not None:
-            mask &= m.t <= end
-        idx = np.flatnonzero(mask)
-        more = idx.size > limit
-        idx = idx[:limit]
-        cols = {s: getattr(m, s)[idx] for s in names}
-        nxt = int(m.k[idx[-1]]) if more and idx.size else None
+            cols, nxt = _reader(history).page(run_id, names, after=after, start=start,
+                                              end=end, limit=limit)
+        n = int(next(iter(cols.values())).size)
         if format == "csv":
             buf = io.StringIO()
             w = csv.writer(buf, lineterminator="\n")
@@ -413,9 +471,9 @@ def create_app(view: TwinView, *, token: str | None = None,
                             for v in row])
             headers = {"X-Next": str(nxt)} if nxt is not None else {}
             return Response(buf.getvalue(), media_type="text/csv", headers=headers)
-        data = {s: ([int(v) for v in cols[s]] if s in ("k", "flags")
-                    else [_num(v) for v in cols[s]]) for s in names}
-        return {"run_id": run_id, "n": int(idx.size), "next": nxt, "signals": data}
+        data = {s: (cols[s].tolist() if s in ("k", "flags") else _nums(cols[s]))
+                for s in names}
+        return _json({"run_id": run_id, "n": n, "next": nxt, "signals": data})
 
     @app.get("/events", tags=["read"])
     def events(kind: str | None = None, after: int = Query(0, ge=0),
@@ -492,12 +550,70 @@ def create_app(view: TwinView, *, token: str | None = None,
         return StreamingResponse(gen(), media_type="text/event-stream",
                                  headers={"Cache-Control": "no-cache"})
 
-    @app.get("/recent", tags=["live"])
-    def recent(since: int = Query(0, ge=0),
-               limit: int = Query(2000, ge=1, le=MAX_PAGE)) -> dict[str, Any]:
+    @app.websocket("/stream/ws")
+    async def stream_ws(websocket: WebSocket) -> None:
+        """WebSocket twin of ``/stream``: JSON messages of samples and events.
+
+        Query: ``since``, ``max_messages``, ``period`` as for ``/stream``.  Each text
+        message is ``{"type": "samples", "samples": [...]}`` or ``{"type": "event",
+        "event": {...}}``.  A missing or wrong token closes the connection with code 1008
+        (policy violation) before anything is sent; a bad query parameter with code 4422
+        and the field in the reason; the end of ``max_messages`` with 1000.
+        """
+        await websocket.accept()
+        try:
+            _authorised(websocket)
+        except ApiError as exc:
+            await websocket.close(code=1008, reason=exc.message)
+            return
+        try:
+            since, max_messages, period = _stream_params(websocket.query_params)
+        except ApiError as exc:
+            await websocket.close(code=4422, reason=exc.message)
+            return
+        gone = asyncio.Event()
+
+        async def watch() -> None:  # the client's messages are ignored; its close ends us
+            try:
+                while (await websocket.receive())["type"] != "websocket.disconnect":
+                    pass
+            finally:
+                gone.set()
+
+        watcher = asyncio.create_task(watch())
+        last, sent = since, 0
+        last_ev = max((e["seq"] for e in view.events()), default=0)
+        try:
+            while (max_messages is None or sent < max_messages) and not gone.is_set():
+                batch = view.samples(since=last, limit=2000)
+                messages = []
+                if batch:
+                    last = batch[-1]["seq"]
+                    messages.append({"type": "samples", "samples": batch})
+                for ev in view.events(since=last_ev):
+                    last_ev = ev["seq"]
+                    messages.append({"type": "event", "event": ev})
+                for msg in messages[:None if max_messages is None else max_messages - sent]:
+                    await websocket.send_text(json.dumps(msg, default=str))
+                    sent += 1
+                if max_messages is not None and sent >= max_messages:
+                    break
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(gone.wait(), period)
+            if not gone.is_set():
+                watcher.cancel()
+                await websocket.close(code=1000)
+        except (WebSocketDisconnect, OSError, RuntimeError):
+            pass  # the client went away mid-send
+        finally:
+            watcher.cancel()
+
+    @app.get("/recent", tags=["live"], response_model=None)
+    async def recent(since: int = Query(0, ge=0),
+                     limit: int = Query(2000, ge=1, le=MAX_PAGE)) -> Response:
         """Samples of the live ring buffer after ``since`` (what the dashboard starts from)."""
         batch = view.samples(since=since, limit=limit)
-        return {"samples": batch, "seq": view.seq, "capacity": view.capacity}
+        return _json({"samples": batch, "seq": view.seq, "capacity": view.capacity})
 
     # ------------------------------------------------------------------ dashboard
     @app.get("/", response_class=HTMLResponse, include_in_schema=False)
@@ -512,6 +628,27 @@ def create_app(view: TwinView, *, token: str | None = None,
         return Response(_static(name), media_type=media[name.rsplit(".", 1)[1]])
 
     return app
+
+
+def _stream_params(query: Any) -> tuple[int, int | None, float]:
+    """``since``, ``max_messages``, ``period`` of a stream's query (as ``/stream`` checks them)."""
+    out: list[Any] = []
+    for name, kind, lo, hi, default in (("since", int, 0, None, 0),
+                                        ("max_messages", int, 1, None, None),
+                                        ("period", float, 0.02, 5.0, 0.2)):
+        raw = query.get(name)
+        if raw is None:
+            out.append(default)
+            continue
+        try:
+            value = kind(raw)
+        except ValueError:
+            raise ApiError(422, f"{name}: not a valid {kind.__name__}: {raw!r}") from None
+        if not math.isfinite(value) or value < lo or (hi is not None and value > hi):
+            bound = f">= {lo:g}" + (f" and <= {hi:g}" if hi is not None else "")
+            raise ApiError(422, f"{name}: must be {bound}, got {raw}")
+        out.append(value)
+    return out[0], out[1], out[2]
 
 
 def _static(name: str) -> str:
@@ -585,6 +722,8 @@ class ApiServer:
     limiter : RateLimiter
     url : str or None
         ``http://HOST:PORT`` once started.
+    ready : threading.Event
+        Set once the server answers (:meth:`start` returned).
 
     Raises
     ------
@@ -608,6 +747,7 @@ class ApiServer:
         self._server: Any = None
         self._thread: threading.Thread | None = None
         self._error: BaseException | None = None
+        self.ready = threading.Event()
 
     @classmethod
     def from_service(cls, service: Any) -> "ApiServer":
@@ -643,7 +783,9 @@ class ApiServer:
         import uvicorn
 
         family = socket.AF_INET6 if ":" in self.host else socket.AF_INET
-        sock = socket.socket(family, socket.SOCK_STREAM)
+        # IPPROTO_TCP named: asyncio sets TCP_NODELAY on the accepted connections only then
+        # (with proto 0 Nagle's algorithm and the client's delayed ACK add ~40 ms per answer)
+        sock = socket.socket(family, socket.SOCK_STREAM, socket.IPPROTO_TCP)
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
             sock.bind((self.host, self.port))
@@ -676,6 +818,13 @@ class ApiServer:
                 raise DataError(f"http.bind: the HTTP server did not start on {self.url}"
                                 + (f": {self._error}" if self._error else ""))
             time.sleep(0.02)
+        # The handlers' garbage triggers full cyclic collections, which walk every object of
+        # the process holding the interpreter lock (about 0.1 s with the ~10^5 objects of the
+        # libraries and the built twin) and stall the sample loop.  Freeze what exists now
+        # (modules, the twin, the server): full collections then walk only newer objects.
+        gc.collect()  # once, before the loop starts: no garbage is frozen
+        gc.freeze()
+        self.ready.set()
         _logger.info("http", extra={"event": "http", "fields": {
             "url": self.url, "docs": f"{self.url}/docs", "token": self.token_set}})
 
@@ -685,7 +834,7 @@ class ApiServer:
         return self._token is not None
 
     def stop(self, timeout: float = 5.0) -> None:
-        """Refuse the queued jobs and stop serving (idempotent).
+        """Refuse the queued jobs, stop serving and close the history reads (idempotent).
 
         Parameters
         ----------
@@ -693,9 +842,12 @@ class ApiServer:
             Most seconds to wait for the server thread.
         """
         self.view.stopped()
+        self.ready.clear()
         if self._server is not None:
             self._server.should_exit = True
         if self._thread is not None:
             self._thread.join(timeout)
         self._thread = None
         self._server = None
+        self.app.state.close_reads()
+        gc.unfreeze()  # the frozen objects may be collected again once they are garbage

@@ -53,7 +53,7 @@ class TwinClient:
     --------
     >>> from kautztwin.service.client import TwinClient
     >>> with TwinClient("http://127.0.0.1:8000", token="...") as twin:  # doctest: +SKIP
-    ...     twin.state()["y"], twin.history(signals="t,y", start=10)["y"][:3]
+    ...     twin.state()["y"], twin.history(signals="t,y,prediction", start=10)["y"][:3]
     ...     twin.set_setpoint(101.5)
     ...     twin.what_if(setpoint=98.0, steps=400)["y"][-1]
     """
@@ -137,7 +137,9 @@ class TwinClient:
         Parameters
         ----------
         signals : str, default='k,t,u,y,flags'
-            Comma-separated.
+            Comma-separated, among ``k, t, u, y, flags, prediction`` (the twin's
+            one-step prediction of each sample) and ``setpoint`` (the set-point in
+            force).
         start, end : float, optional
             Time window, plant seconds.
         page : int, default=10000
@@ -146,7 +148,13 @@ class TwinClient:
         Returns
         -------
         dict of ndarray
-            One array per signal (NaN for a missing number).
+            One array per signal: ``k`` and ``flags`` int64, the others float (NaN for
+            a missing number: no prediction or set-point in the identification phase).
+
+        Raises
+        ------
+        ApiClientError
+            An unknown signal, a bad window (422, naming the field).
         """
         names = [s.strip() for s in signals.split(",") if s.strip()]
         cols: dict[str, list[Any]] = {s: [] for s in names}

@@ -8,9 +8,11 @@ override, a re-identification request, a what-if prediction.  Those jobs run
 in the loop's thread between two samples, so nothing of the twin is touched
 by two threads at once; a handler waits for its job's result.
 
-Reads of the history store (models, measurements, events) go straight to the
-store, which serialises its connection with a lock.  :class:`RateLimiter`
-bounds the writes per client.
+Reads of models and events go straight to the store, which serialises its
+connection with a lock; pages of ``/history`` come from
+:class:`~kautztwin.service.history_reader.HistoryReader` instead.
+:class:`RateLimiter` bounds the writes per client.  The loop's pace is watched
+by :meth:`TwinView.loop_timing` (served by ``/health``).
 """
 
 from __future__ import annotations
@@ -33,6 +35,8 @@ __all__ = ["ApiError", "RateLimiter", "TwinView"]
 #: fields of a sample kept in the ring buffer (and streamed)
 SAMPLE_FIELDS = ("k", "t", "phase", "y", "u", "setpoint", "reference", "y_pred", "fit",
                  "version", "mpc_ms", "update_ms", "flags")
+#: intervals between samples kept for :meth:`TwinView.loop_timing`
+TIMING_WINDOW = 5000
 
 
 class ApiError(KautzTwinError):
@@ -99,6 +103,8 @@ class TwinView:
         self._jobs: queue.Queue[_Job] = queue.Queue()
         self._latest: dict[str, Any] = {}
         self._n_events = 0
+        self._intervals: collections.deque[float] = collections.deque(maxlen=TIMING_WINDOW)
+        self._last_sample: float | None = None
         self.seq = 0
         self.running = False
         self.started = time.time()
@@ -112,6 +118,7 @@ class TwinView:
         state : TwinState
             What :meth:`DigitalTwin.step` returned.
         """
+        now = time.perf_counter()
         sample = {f: getattr(state, f) for f in SAMPLE_FIELDS}
         for key in ("k", "version", "flags"):
             sample[key] = int(sample[key])
@@ -125,6 +132,9 @@ class TwinView:
                 new_events.append({"kind": ev.kind, "k": ev.k, "t": _num(ev.t),
                                    "message": ev.message, "source": "twin"})
         with self._lock:
+            if self._last_sample is not None:
+                self._intervals.append(now - self._last_sample)
+            self._last_sample = now
             self.seq += 1
             sample["seq"] = self.seq
             self._samples.append(sample)
@@ -253,6 +263,34 @@ class TwinView:
         """
         with self._lock:
             return [e for e in self._events if e["seq"] > since]
+
+    def loop_timing(self) -> dict[str, Any]:
+        """How regularly the sample loop hands over samples (``/health``'s ``loop``).
+
+        Returns
+        -------
+        dict
+            ``samples`` (intervals in the window, the last 5000), ``interval_ms_p50``,
+            ``interval_ms_p99``, ``interval_ms_max`` (wall time between two samples
+            reaching the view), and for a real-time clock ``period_ms`` (the nominal
+            interval), ``late`` (samples the loop reached more than its clock's
+            tolerance, one period, after their time, since the run started) and
+            ``behind_ms_max`` (the largest lateness, wall ms).
+        """
+        with self._lock:
+            iv = np.array(self._intervals) * 1e3
+        out: dict[str, Any] = {"samples": int(iv.size)}
+        if iv.size:
+            p50, p99 = np.percentile(iv, [50, 99])
+            out.update(interval_ms_p50=round(float(p50), 3), interval_ms_p99=round(float(p99), 3),
+                       interval_ms_max=round(float(iv.max()), 3))
+        twin = self.service.twin
+        clock = getattr(twin, "clock", None)
+        if clock is not None and getattr(clock, "realtime", False):
+            out.update(period_ms=round(twin.config.dt / clock.speedup * 1e3, 3),
+                       late=int(clock.n_late),
+                       behind_ms_max=round(clock.max_lateness / clock.speedup * 1e3, 3))
+        return out
 
     def residual_sigma(self) -> float:
         """Standard deviation of ``y - y_pred`` over the ring buffer (NaN when unknown).

@@ -1,0 +1,300 @@
+"""Pages of a twin's history for ``GET /history``: samples, predictions, set-points.
+
+:class:`HistoryReader` reads one run of the twin's SQLite store on read-only
+connections of its own (one per thread): in WAL mode they never block the
+sample loop's commits, nor they them, and they never take the store's lock
+(which the loop needs to commit).  A page is one bounded query on the primary
+key (``k > after ... LIMIT``), so it costs the same at any point of a long
+run.  Besides the measurements (``k, t, u, y, flags``) a page can carry the
+twin's one-step ``prediction`` of each sample (as the store holds it: made at
+the sample before) and the ``setpoint`` in force, rebuilt from the run's
+configured schedule and the set-points written through the API
+(:func:`setpoint_segments`, :func:`setpoints_at`).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import sqlite3
+import threading
+import urllib.parse
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .twin_view import ApiError
+
+__all__ = ["HISTORY_SIGNALS", "HistoryReader", "setpoint_segments", "setpoints_at"]
+
+#: per-sample signals of ``GET /history``: the store's measurements, the twin's one-step
+#: prediction of each sample and the set-point in force at it
+HISTORY_SIGNALS = ("k", "t", "u", "y", "flags", "prediction", "setpoint")
+
+
+def setpoint_segments(config: Any, events: Any) -> list[tuple[int, NDArray[np.float64],
+                                                                NDArray[np.float64]]]:
+    """The set-point schedules of a run and the first sample each one is in force from.
+
+    The configured schedule (``config['twin']['setpoints']``) holds from sample 0.  An
+    ``api-setpoint`` event (``POST /setpoint``) replaces it from the event's ``k_from`` on as
+    its job did in the loop: the entries before ``t - dt/2`` are kept and the new value holds
+    from there.  A ``resume`` event (a restart, logged at the last committed sample) brings
+    the configured schedule back: a set-point from the API lives in the running twin only.
+
+    Parameters
+    ----------
+    config : dict
+        The run's stored configuration (``{"twin": TwinConfig.to_dict(), ...}``).
+    events : iterable of (str, int or None, float or None, object)
+        ``(kind, k, t, payload)`` of the run's events in logging order; other kinds are
+        ignored.
+
+    Returns
+    -------
+    list of (int, ndarray, ndarray)
+        ``(k_from, times, values)`` in increasing ``k_from``; empty schedules for a run
+        without set-points.
+
+    Examples
+    --------
+    >>> cfg = {"twin": {"dt": 0.5, "setpoints": [[0.0, 1.0], [10.0, 2.0]]}}
+    >>> segs = setpoint_segments(cfg, [("api-setpoint", 4, 2.0, {"value": 5.0, "k_from": 4}),
+    ...                                ("resume", 9, 123.4, {"last_k": 9})])
+    >>> [(k, t.tolist(), v.tolist()) for k, t, v in segs]
+    [(0, [0.0, 10.0], [1.0, 2.0]), (4, [0.0, 1.75], [1.0, 5.0]), (10, [0.0, 10.0], [1.0, 2.0])]
+    >>> k = np.arange(12)
+    >>> setpoints_at(segs, k, 0.5 * k, 0.5).tolist()
+    [1.0, 1.0, 1.0, 1.0, 5.0, 5.0, 5.0, 5.0, 5.0, 5.0, 1.0, 1.0]
+    """
+    twin = config.get("twin", {}) if isinstance(config, dict) else {}
+    dt = float(twin.get("dt") or 0.0)
+    base = sorted((float(t), float(v)) for t, v in (twin.get("setpoints") or []))
+    schedule = list(base)
+    segments = [(0, schedule)]
+    for kind, k, t, payload in events:
+        p = payload if isinstance(payload, dict) else {}
+        if kind == "api-setpoint" and "value" in p and t is not None:
+            k_from = int(p.get("k_from", k if k is not None else 0))
+            t_from = float(t) - 0.5 * dt
+            schedule = [e for e in schedule if e[0] < t_from] + [(t_from, float(p["value"]))]
+            segments.append((k_from, schedule))
+        elif kind == "resume":
+            schedule = list(base)
+            segments.append((0 if k is None else int(k) + 1, schedule))
+    return [(k0, np.array([e[0] for e in sch], dtype=float),
+             np.array([e[1] for e in sch], dtype=float)) for k0, sch in segments]
+
+
+def setpoints_at(segments: list[tuple[int, NDArray[np.float64], NDArray[np.float64]]],
+                 k: NDArray[Any], t: NDArray[np.float64], dt: float,
+                 k_control: int = 0) -> NDArray[np.float64]:
+    """The set-point in force at samples ``k`` (times ``t``), NaN without a schedule.
+
+    Parameters
+    ----------
+    segments : list of (int, ndarray, ndarray)
+        From :func:`setpoint_segments`.
+    k : ndarray of int
+        Sample indices.
+    t : ndarray of float
+        Their times, s.
+    dt : float
+        Sampling period, s (a schedule time within ``1e-9 dt`` after a sample counts as
+        reached, as in :meth:`TwinConfig.setpoint <kautztwin.twin.runtime.TwinConfig.setpoint>`).
+    k_control : int, default=0
+        The first sample under control (the identification phase has no set-point: NaN).
+
+    Returns
+    -------
+    ndarray of float
+    """
+    out = np.full(np.shape(t), math.nan)
+    k = np.asarray(k)
+    starts = np.array([s[0] for s in segments])
+    which = np.searchsorted(starts, k, side="right") - 1
+    for i, (_, times, values) in enumerate(segments):
+        sel = (which == i) & (k >= k_control)
+        if not values.size or not sel.any():
+            continue
+        j = np.searchsorted(times, t[sel] + 1e-9 * dt, side="right") - 1
+        out[sel] = values[np.maximum(j, 0)]
+    return out
+
+
+def _first_number(v: Any) -> float:
+    """A stored prediction's first value: a number, its JSON text, or missing (NaN)."""
+    if v is None or v == "null" or v == "":
+        return math.nan
+    return float(v)
+
+
+class HistoryReader:
+    """Pages of a run's stored samples for ``GET /history``, off the store's lock.
+
+    On an SQLite file it reads on connections of its own, opened read-only (one per
+    thread): in WAL mode they never block the loop's commits, nor they them, and a page is
+    one bounded query on the primary key (``k > after ... LIMIT``), so it costs the same at
+    any point of a long run.  A store without a file (in memory) is read through its own
+    methods, under its lock.
+
+    Parameters
+    ----------
+    history : HistoryStore
+        The twin's store.
+    """
+
+    def __init__(self, history: Any) -> None:
+        self.history = history
+        path = getattr(history, "path", None)
+        self.path = (os.path.abspath(path) if isinstance(path, str) and path != ":memory:"
+                     and os.path.exists(path) else None)
+        self._local = threading.local()
+        self._lock = threading.Lock()
+        self._connections: list[sqlite3.Connection] = []
+        self._configs: dict[int, Any] = {}
+        self._closed = False
+
+    def _connection(self) -> sqlite3.Connection:
+        conn = getattr(self._local, "conn", None)
+        if conn is None:
+            assert self.path is not None
+            uri = f"file:{urllib.parse.quote(self.path)}?mode=ro"
+            conn = sqlite3.connect(uri, uri=True, timeout=5.0, isolation_level=None,
+                                   check_same_thread=False)
+            with self._lock:
+                if self._closed:
+                    conn.close()
+                    raise ApiError(503, "the history store is closed")
+                self._connections.append(conn)
+            self._local.conn = conn
+        return conn
+
+    def page(self, run_id: int, signals: list[str], *, after: int = -1,
+             start: float | None = None, end: float | None = None,
+             limit: int = 1000) -> tuple[dict[str, NDArray[Any]], int | None]:
+        """One page of samples ``k > after`` within ``[start, end]``, oldest first.
+
+        Parameters
+        ----------
+        run_id : int
+            The run.
+        signals : list of str
+            Among :data:`HISTORY_SIGNALS`.
+        after : int, default=-1
+            The page cursor: samples with ``k > after``.
+        start, end : float, optional
+            Time window, plant s (inclusive).
+        limit : int, default=1000
+            Most samples of the page.
+
+        Returns
+        -------
+        dict of str to ndarray
+            One column per signal (``k`` and ``flags`` int64, the others float, NaN
+            where missing).  ``prediction`` is the twin's one-step prediction of the
+            sample (stored as made at the sample before; NaN before the first model, and
+            for a moment for the newest samples, committed just before their predictions);
+            ``setpoint`` the set-point in force (:func:`setpoint_segments`; NaN in the
+            identification phase and without control).
+        int or None
+            The cursor of the next page (``None``: this was the last).
+        """
+        if self._closed:
+            raise ApiError(503, "the history store is closed")
+        want = "prediction" in signals
+        read = self._read_sqlite if self.path is not None else self._read_store
+        rows, config, events = read(run_id, after, start, end, limit, want)
+        more = len(rows) > limit
+        rows = rows[:limit]
+        columns = list(zip(*rows, strict=True)) if rows else [()] * (6 if want else 5)
+        cols: dict[str, NDArray[Any]] = {
+            "k": np.array(columns[0], dtype=np.int64),
+            "flags": np.array(columns[4], dtype=np.int64),
+        }
+        for i, name in ((1, "t"), (2, "u"), (3, "y")):
+            cols[name] = np.array([math.nan if v is None else v for v in columns[i]],
+                                  dtype=float)
+        if want:
+            cols["prediction"] = np.array([_first_number(v) for v in columns[5]], dtype=float)
+        if "setpoint" in signals:
+            twin = config.get("twin", {}) if isinstance(config, dict) else {}
+            dt = float(twin.get("dt") or 0.0)
+            k_control = (int(round(float(twin["ident_duration"]) / dt))
+                         if dt > 0 and twin.get("ident_duration") is not None else 0)
+            cols["setpoint"] = setpoints_at(setpoint_segments(config, events), cols["k"],
+                                            cols["t"], dt, k_control)
+        nxt = int(cols["k"][-1]) if more and rows else None
+        return {s: cols[s] for s in signals}, nxt
+
+    def _read_sqlite(self, run_id: int, after: int, start: float | None, end: float | None,
+                     limit: int, prediction: bool) -> tuple[list[Any], Any, list[Any]]:
+        """Rows ``(k, t, u, y, flags[, prediction])``, the run's configuration, its events."""
+        conn = self._connection()
+        query = "SELECT k, t, u, y, flags"
+        if prediction:  # the newest one-step prediction of sample k, made at k - 1, as the
+            # text of the JSON array's first number (Python parses it: exactly the stored float)
+            query += (", (SELECT substr(p.y_pred, 2, CASE WHEN instr(p.y_pred, ',') > 0"
+                      " THEN instr(p.y_pred, ',') - 2 ELSE length(p.y_pred) - 2 END)"
+                      " FROM predictions p WHERE p.run_id = m.run_id AND p.k = m.k - 1"
+                      " AND p.horizon >= 1 ORDER BY p.prediction_id DESC LIMIT 1)")
+        query += " FROM measurements m WHERE run_id = ? AND k > ?"
+        args: list[Any] = [run_id, after]
+        if start is not None:
+            query += " AND t >= ?"
+            args.append(start)
+        if end is not None:
+            query += " AND t <= ?"
+            args.append(end)
+        try:
+            conn.execute("BEGIN")  # one snapshot for the page
+            try:
+                rows = conn.execute(query + " ORDER BY k LIMIT ?", (*args, limit + 1)).fetchall()
+                config = self._configs.get(run_id)
+                if config is None:
+                    row = conn.execute("SELECT config FROM runs WHERE run_id = ?",
+                                       (run_id,)).fetchone()
+                    config = self._configs[run_id] = json.loads(row[0]) if row else {}
+                events = [(kind, k, t, None if p is None else json.loads(p)) for kind, k, t, p in
+                          conn.execute("SELECT kind, k, t, payload FROM events WHERE run_id = ? "
+                                       "AND kind IN ('api-setpoint', 'resume') ORDER BY event_id",
+                                       (run_id,))]
+            finally:
+                conn.execute("COMMIT")
+        except sqlite3.Error as exc:
+            raise ApiError(503, f"cannot read the history store: {exc}") from None
+        return rows, config, events
+
+    def _read_store(self, run_id: int, after: int, start: float | None, end: float | None,
+                    limit: int, prediction: bool) -> tuple[list[Any], Any, list[Any]]:
+        """As :meth:`_read_sqlite`, through the store's methods (a store without a file)."""
+        h = self.history
+        m = h.measurements(run_id, since=after if after >= 0 else None)
+        mask = np.ones(len(m), dtype=bool)
+        if start is not None:
+            mask &= m.t >= start
+        if end is not None:
+            mask &= m.t <= end
+        idx = np.flatnonzero(mask)[:limit + 1]
+        cols = [m.k[idx].tolist(), m.t[idx].tolist(), m.u[idx].tolist(), m.y[idx].tolist(),
+                m.flags[idx].tolist()]
+        if prediction:
+            preds: dict[int, float] = {}
+            if idx.size:
+                for p in h.predictions(run_id, since=int(m.k[idx[0]]) - 2):
+                    if p.horizon >= 1:
+                        preds[int(p.k)] = float(p.y_pred[0])
+            cols.append([preds.get(k - 1) for k in cols[0]])
+        events = [(e.kind, e.k, e.t, e.payload) for e in h.events(run_id)
+                  if e.kind in ("api-setpoint", "resume")]
+        return list(zip(*cols, strict=True)), h.run_info(run_id).config, events
+
+    def close(self) -> None:
+        """Close the read connections (later pages: 503).  Idempotent."""
+        with self._lock:
+            self._closed = True
+            conns, self._connections = self._connections, []
+        for conn in conns:
+            conn.close()
