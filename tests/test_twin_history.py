@@ -610,3 +610,22 @@ def test_kill_9_loses_no_committed_sample_and_resumes(tmp_path):
     with SQLiteHistory(db) as s:
         assert _check_intact(s, run, last + 10) == last + 10
         assert s.run_info(run).status == "finished"
+
+
+def test_read_run_setpoints_follow_api_writes_and_restarts():
+    """twin history shows the set-point the loop used: NaN while identifying, the configured
+    schedule, a value written through the API from its sample on, the schedule again after
+    a restart (the same rule as the service's GET /history)."""
+    from kautztwin.twin.history import MemoryHistory, read_run
+
+    h = MemoryHistory()
+    rid = h.start_run({"twin": {"dt": 0.5, "ident_duration": 1.0,
+                                "setpoints": [[0.0, 1.0], [4.0, 2.0]]}, "plant": "p"})
+    h.append_measurements(rid, [(k, 0.5 * k, 0.0, 0.0, 0) for k in range(14)])
+    h.log_event(rid, "api-setpoint", "set-point 5 from the API", k=3, t=1.5,
+                payload={"value": 5.0, "k_from": 4})
+    h.log_event(rid, "resume", "restart", k=9, t=4.5, payload={"last_k": 9})
+    sp = read_run(h, signals=("setpoint",)).columns["setpoint"]
+    # k: 0 1 (identification) | 2 3 configured 1.0 | 4..9 API 5.0 | 10.. configured (t >= 4: 2.0)
+    expected = [np.nan, np.nan, 1.0, 1.0, 5.0, 5.0, 5.0, 5.0, 5.0, 5.0, 2.0, 2.0, 2.0, 2.0]
+    np.testing.assert_array_equal(sp, expected)

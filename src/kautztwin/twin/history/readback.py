@@ -18,6 +18,7 @@ from numpy.typing import NDArray
 
 from ...exceptions import DataError
 from .protocol import HistoryStore
+from .setpoints import control_start, setpoint_segments, setpoints_at
 
 __all__ = ["SIGNALS", "RunHistory", "read_run"]
 
@@ -72,20 +73,6 @@ class RunHistory:
             "samples": {name: clean(col) for name, col in self.columns.items()},
             "versions": self.versions, "events": self.events,
         }
-
-
-def _setpoints(config: dict[str, Any], t: NDArray[np.float64]) -> NDArray[np.float64]:
-    """The set-point in force at each time (NaN for a run without set-points)."""
-    twin = config.get("twin", {}) if isinstance(config, dict) else {}
-    pairs = twin.get("setpoints") or []
-    out = np.full(t.shape, math.nan)
-    dt = float(twin.get("dt") or 0.0)
-    for i, (ti, v) in enumerate(pairs):
-        if i == 0:
-            out[:] = float(v)
-        else:
-            out[t + 1e-9 * dt >= float(ti)] = float(v)
-    return out
 
 
 def read_run(
@@ -161,7 +148,11 @@ def read_run(
         if name in ("y", "u", "flags"):
             columns[name] = np.asarray(getattr(rows, name))[keep]
         elif name == "setpoint":
-            columns[name] = _setpoints(info.config, t)[keep]
+            events = [(e.kind, e.k, e.t, e.payload) for e in history.events(info.run_id)
+                      if e.kind in ("api-setpoint", "resume")]
+            dt, k_control = control_start(info.config)
+            columns[name] = setpoints_at(setpoint_segments(info.config, events),
+                                         np.asarray(rows.k), t, dt, k_control)[keep]
         else:  # prediction of sample j, made at sample j - 1
             pred = np.full(t.shape, math.nan)
             index = {int(k): i for i, k in enumerate(np.asarray(rows.k))}
