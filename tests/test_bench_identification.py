@@ -89,3 +89,21 @@ def test_verdict_names_every_loss_with_a_reason(quick_run):
             assert loss["margin"] < 0 and loss["why"]
             assert f"kautztwin BELOW {loss['method']}" in stdout
     assert set(result["summary"]) == {"tclab", "dryer", "cascaded_tanks"}
+
+
+def test_auto_structure_search_is_reported_and_wins_on_the_split_record(quick_run):
+    # issue #13: the default (auto) search reports its bound, criterion and cost, and on the
+    # hair dryer validates no worse than the hand-chosen 3-pole structure (ties: 0.05 points)
+    result, stdout = quick_run
+    by = {d["name"]: {r["method"]: r for r in d["results"]} for d in result["datasets"]}
+    for name, rows in by.items():
+        auto = rows["kautztwin_auto"]["model"]
+        assert auto["search"]["bound"] >= 10, name
+        assert auto["one_fit_time_s"] > 0 and auto["search_over_one_fit"] > 0
+        rows_n = [r["n_poles"] for r in auto["order_selection"]]
+        assert rows_n == sorted(rows_n) and auto["n_poles"] in rows_n
+    assert by["dryer"]["kautztwin_auto"]["fit_val"] >= by["dryer"]["kautztwin"]["fit_val"] - 0.05
+    assert by["tclab"]["kautztwin_auto"]["fit_est"] > 97.75
+    assert by["cascaded_tanks"]["kautztwin_auto"]["fit_val"] > by["cascaded_tanks"]["arx"][
+        "fit_val"]
+    assert "kautztwin_auto picked" in stdout

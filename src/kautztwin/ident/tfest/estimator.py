@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import warnings
 from collections.abc import Sequence
 from typing import Any
@@ -17,6 +16,7 @@ from ..simulate import INTERSAMPLE
 from .problem import _pooled_fit, _Problem
 from .refine import fit_order
 from .statistics import nuisance
+from .structure import search_structure
 
 __all__ = ["TransferFunctionEstimator"]
 
@@ -36,12 +36,17 @@ class TransferFunctionEstimator:
     Parameters
     ----------
     n_poles : int or 'auto', default=2
-        Number of poles, or ``'auto'`` to choose it from 1 to ``max_order``:
-        by the best validation fit when ``validate_from`` leaves validation
-        data, else by the smallest AIC.
+        Number of poles, or ``'auto'`` to search the structure (orders 1 to
+        the bound, zeros, delay) by :mod:`~kautztwin.ident.tfest.structure`:
+        cheap screening of every order, output-error refinement of the best
+        few, chosen by the validation fit when ``validate_from`` leaves
+        validation data, else by the fit on held-out data of the estimation
+        records (the last third of each record, or each record in turn when
+        several records start at rest).
     n_zeros : int, optional
         Number of zeros (at most ``n_poles``); ``n_poles - 1`` when omitted,
-        as in ``tfest``.  With ``n_poles='auto'`` it is capped at ``n - 1``.
+        as in ``tfest``.  With ``n_poles='auto'``: searched from 0 to ``n - 1``
+        when omitted, else fixed (capped at ``n - 1``).
     delay : bool or float, default=False
         ``False``: no delay.  ``True``: estimate the input delay.  A number:
         a fixed delay in seconds.
@@ -60,8 +65,12 @@ class TransferFunctionEstimator:
     validate_from : float, optional
         Samples at ``t >= validate_from`` are held out of the estimation; the
         model is simulated over the whole record and scored on them.
-    max_order : int, default=4
-        Largest order tried by ``n_poles='auto'``.
+    max_order : int, optional
+        Largest order tried by ``n_poles='auto'``.  When omitted, the bound
+        the data support: 10, plus one per 100 estimation samples beyond
+        1000 (at most 20); either way lowered until the estimation samples
+        are three times the parameters.  A pick at the bound warns
+        (``ConvergenceWarning``).
     max_iter : int, default=100
         Iteration budget of each refinement (residual evaluations are about
         ``max_iter * (n_params + 1)``).
@@ -82,6 +91,9 @@ class TransferFunctionEstimator:
         The records the model was fitted to.
     n_evaluations_ : int
         Residual evaluations spent (all starts and orders).
+    search_ : dict
+        With ``n_poles='auto'``: the bound and its rule, the criterion, the
+        number of candidates, the refined structures and the search time.
 
     See Also
     --------
@@ -112,7 +124,7 @@ class TransferFunctionEstimator:
         initial_state: str = "auto",
         offset: bool = True,
         validate_from: float | None = None,
-        max_order: int = 4,
+        max_order: int | None = None,
         max_iter: int = 100,
         tol: float = 1e-10,
         n_restarts: int = 0,
@@ -201,8 +213,11 @@ class TransferFunctionEstimator:
             if self.n_poles != "auto":
                 raise DataError(f"n_poles must be a positive integer or 'auto'; got "
                                 f"{self.n_poles!r}")
-            if not isinstance(self.max_order, (int, np.integer)) or self.max_order < 1:
-                raise DataError(f"max_order must be an integer >= 1; got {self.max_order!r}")
+            if self.max_order is not None and (
+                    not isinstance(self.max_order, (int, np.integer))
+                    or isinstance(self.max_order, bool) or self.max_order < 1):
+                raise DataError(f"max_order must be an integer >= 1 or None; got "
+                                f"{self.max_order!r}")
         elif (not isinstance(self.n_poles, (int, np.integer)) or isinstance(self.n_poles, bool)
               or self.n_poles < 1):
             raise DataError(f"n_poles must be a positive integer or 'auto'; got {self.n_poles!r}")
@@ -289,38 +304,20 @@ class TransferFunctionEstimator:
                         f"{r.kind}"
                     )
         est, _ = self._split(recs)
-        if self.n_poles == "auto":
-            orders = range(1, int(self.max_order) + 1)
-        else:
-            orders = range(int(self.n_poles), int(self.n_poles) + 1)
-        rows, fits = [], []
         self.n_evaluations_ = 0
-        for n in orders:
-            if self.n_zeros is None:
-                m = n - 1
-            else:
-                m = int(self.n_zeros) if self.n_poles != "auto" else min(int(self.n_zeros), n - 1)
+        if self.n_poles == "auto":
+            chosen, caught = search_structure(self, recs, est)
+        else:
+            n = int(self.n_poles)
+            m = n - 1 if self.n_zeros is None else int(self.n_zeros)
             if any(r.kind == "impulse" for r in recs) and m >= n:
                 raise DataError(f"impulse records need fewer zeros than poles; got n_zeros = {m}, "
                                 f"n_poles = {n}")
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
-                model = fit_order(self, recs, est, n, m)
-            fits.append((model, caught))
-            rows.append({"n_poles": n, "n_zeros": m, "aic": model.aic,
-                         "fit_percent": model.fit_percent,
-                         "validation_fit_percent": model.validation_fit_percent})
-        best = 0
-        if self.n_poles == "auto":
-            if all(r["validation_fit_percent"] is not None for r in rows):
-                best = int(np.argmax([r["validation_fit_percent"] for r in rows]))
-            else:
-                best = int(np.argmin([r["aic"] for r in rows]))
-        chosen, caught = fits[best]
+                chosen = fit_order(self, recs, est, n, m)
         for w in caught:  # only the chosen order's warnings matter
             warnings.warn(w.message, w.category, stacklevel=2)
-        if self.n_poles == "auto":
-            chosen = dataclasses.replace(chosen, order_selection=tuple(rows))
         self.model_ = chosen
         self.n_poles_ = chosen.n_poles
         self.n_zeros_ = chosen.n_zeros
