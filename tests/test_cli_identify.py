@@ -129,8 +129,19 @@ def test_headerless_file_takes_column_numbers(capsys, tmp_path):
 def test_auto_order_reports_the_selection(capsys, tmp_path):
     path = write_step_csv(tmp_path / "a.csv")
     d = run_json(capsys, "identify", path, "--time", "time", "--input", "u", "--output", "y",
-                 "--kind", "step", "--zeros", "0", "--max-order", "2")
-    assert [r["n_poles"] for r in d["order_selection"]] == [1, 2]
+                 "--kind", "step", "--zeros", "0", "--max-order", "3")
+    assert [r["n_poles"] for r in d["order_selection"]] == [1, 2, 3]
+    assert d["n_poles"] == 2  # the record's true order, below the bound: no warning
+
+
+def test_auto_order_at_the_search_bound_warns(capsys, tmp_path):
+    path = write_step_csv(tmp_path / "a.csv")
+    code, out, err = run(capsys, "identify", path, "--time", "time", "--input", "u",
+                         "--output", "y", "--kind", "step", "--zeros", "0", "--max-order", "1",
+                         "--json")
+    assert code == 0
+    assert json.loads(out)["n_poles"] == 1
+    assert "bound" in err
 
 
 def test_plot_and_table(capsys, tmp_path):
@@ -212,3 +223,81 @@ def test_named_columns_in_a_headerless_file_are_an_error(capsys, tmp_path):
     np.savetxt(path, np.ones((10, 2)))
     code, out, err = run(capsys, "identify", path, "--dt", "1", "--input", "u", "--output", "y")
     assert_one_line_error(code, out, err, "no header row")
+
+
+# --------------------------------------------------------------------------- --report
+def write_noisy_io_csv(path, *, seed=0, n=1200, dt=0.05, noise=0.02):
+    """Input/output record of 2 / (s^2 + 1.2 s + 1) with white measurement noise."""
+    from kautztwin.ident import simulate_lti
+
+    rng = np.random.default_rng(seed)
+    t = dt * np.arange(n)
+    u = np.repeat(rng.choice([0.0, 1.0], n // 10), 10)
+    y = 3.0 + simulate_lti(([2.0], [1.0, 1.2, 1.0]), t, u) + noise * rng.standard_normal(n)
+    np.savetxt(path, np.column_stack([t, u, y]), delimiter=",", header="t,u,y", comments="")
+    return path
+
+
+REPORT_FILES = ("report.md", "report.json", "compare.png", "residuals.png", "bode.png",
+                "step.png")
+
+
+@pytest.mark.parametrize(("order", "white"), [(2, True), (1, False)],
+                         ids=["right-order", "under-modelled"])
+def test_report_writes_the_files_and_the_verdict(capsys, tmp_path, order, white):
+    data = write_noisy_io_csv(tmp_path / "io.csv")
+    out = tmp_path / "report" / "sub"  # made with its parents
+    code, text, err = run(capsys, "identify", data, "--time", "t", "--input", "u", "--output",
+                          "y", "--order", order, "--zeros", "0", "--validate-from", "30",
+                          "--report", out)
+    assert (code, err) == (0, "")
+    for name in REPORT_FILES:
+        assert (out / name).stat().st_size > 0, name
+    for name in REPORT_FILES[2:]:
+        assert (out / name).read_bytes().startswith(PNG_SIGNATURE), name
+    verdict = json.loads((out / "report.json").read_text())
+    assert verdict["tested_on"] == "validation"
+    assert verdict["residuals_white"] is white
+    assert verdict["residuals_independent_of_input"] is white
+    assert 0.0 <= verdict["whiteness_p_value"] <= 1.0
+    assert [p["name"] for p in verdict["parameters"]][-1] == f"den[{order}]"
+    assert len(verdict["poles"]) == order
+    md = (out / "report.md").read_text()
+    yes_no = "yes" if white else "no"
+    assert f"residuals white: {yes_no} (Ljung-Box p = " in md
+    assert f"residuals independent of input: {yes_no} (p = " in md
+    assert "validation" in md and "| den[1] |" in md
+    assert f"residuals white (validation data): {yes_no}" in text
+
+
+def test_report_summary_in_json(capsys, tmp_path):
+    data = write_noisy_io_csv(tmp_path / "io.csv", n=600)
+    d = run_json(capsys, "identify", data, "--time", "t", "--input", "u", "--output", "y",
+                 "--order", "2", "--zeros", "0", "--report", tmp_path / "rep")
+    assert d["report"]["tested_on"] == "estimation"
+    assert d["report"]["residuals_white"] is True
+    assert sorted(d["report"]["files"]) == sorted(REPORT_FILES)
+
+
+def test_report_of_a_step_record_without_input_variation(capsys, tmp_path):
+    """TCLab: the input is constant over the record, so there is no cross-correlation test."""
+    out = tmp_path / "tclab"
+    code, text, err = run(capsys, "identify", TCLAB, "--time", "Time", "--input", "Q1",
+                          "--output", "T1", "--kind", "step", "--order", "2", "--zeros", "0",
+                          "--report", out)
+    assert (code, err) == (0, "")
+    verdict = json.loads((out / "report.json").read_text())
+    assert verdict["residuals_independent_of_input"] is None
+    assert "n/a" in (out / "report.md").read_text()
+
+
+@pytest.mark.parametrize("where", ["file", "under-a-file"])
+def test_report_dir_that_cannot_be_a_folder_is_one_line_exit_2(capsys, tmp_path, where):
+    data = write_step_csv(tmp_path / "a.csv")
+    blocker = tmp_path / "taken"
+    blocker.write_text("x")
+    target = blocker if where == "file" else blocker / "report"
+    code, out, err = run(capsys, "identify", data, "--time", "time", "--input", "u",
+                         "--output", "y", "--kind", "step", "--order", "2", "--report", target)
+    assert_one_line_error(code, out, err, "--report")
+    assert "not a directory" in err

@@ -337,8 +337,9 @@ def test_cli_identify_with_several_columns_fits_a_mimo_model(tmp_path, capsys):
     ("extra", "match"),
     [(["--delay"], "--delay is not supported for a MIMO model"),
      (["--kind", "step"], "--kind is not supported"),
-     (["--input", "Q1,"], "empty column name")],
-    ids=["delay", "kind", "empty-column"],
+     (["--input", "Q1,"], "empty column name"),
+     (["--model", "wiener"], "--model wiener fits one input and one output")],
+    ids=["delay", "kind", "empty-column", "nonlinear-model"],
 )
 def test_cli_mimo_usage_errors_are_one_line(tmp_path, capsys, extra, match):
     from kautztwin.cli.main import main

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import sys
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -40,6 +42,8 @@ examples:
       --order 3 --delay --validate-from 40
   kautztwin identify data/hydraulic_actuator/actuator.csv --dt 1 --input u --output p \\
       --order 3 --zeros 1 --validate-from 512
+  kautztwin identify data/daisy_hair_dryer/dryer.dat --dt 0.08 --input 1 --output 2 \\
+      --order 3 --delay --validate-from 40 --report dryer-report
 
 Files without a header row (DaISy .dat) take 1-based column numbers.
 """
@@ -68,8 +72,10 @@ def register(subparsers: argparse._SubParsersAction, common: argparse.ArgumentPa
                       help="time column in seconds (non-uniform and repeated stamps are fine)")
     data.add_argument("--dt", type=float, metavar="SECONDS",
                       help="sampling period for files without a time column (t = k * dt)")
-    data.add_argument("--input", required=True, metavar="COLUMN", help="input column")
-    data.add_argument("--output", required=True, metavar="COLUMN", help="output column")
+    data.add_argument("--input", required=True, metavar="COLUMN",
+                      help="input column (several, comma-separated, fit a MIMO Kautz model)")
+    data.add_argument("--output", required=True, metavar="COLUMN",
+                      help="output column (several, comma-separated, fit a MIMO Kautz model)")
     data.add_argument("--record", metavar="COLUMN",
                       help="column whose (numeric) value names the record of each row")
     data.add_argument(
@@ -80,12 +86,23 @@ def register(subparsers: argparse._SubParsersAction, common: argparse.ArgumentPa
     )
     model = p.add_argument_group("model")
     model.add_argument("--order", default="auto", metavar="N|auto",
-                       help="number of poles, or 'auto' to choose 1..--max-order by validation "
-                       "fit (with --validate-from) or AIC (default: %(default)s)")
+                       help="number of poles, or 'auto' to search orders up to --max-order, "
+                       "zeros and delay, choosing by the validation fit (with --validate-from) "
+                       "or by the fit on held-out parts of the records (default: %(default)s)")
     model.add_argument("--zeros", type=int, metavar="M",
                        help="number of zeros (default: order - 1, as tfest)")
-    model.add_argument("--max-order", type=int, default=4, metavar="N",
-                       help="largest order tried by --order auto (default: %(default)s)")
+    model.add_argument("--max-order", type=int, default=None, metavar="N",
+                       help="largest order tried by --order auto (default: what the data "
+                       "support: 10, more with records over 1000 samples, at most 20)")
+    model.add_argument(
+        "--model", default="linear",
+        choices=("linear", "wiener", "hammerstein", "wiener-hammerstein", "volterra", "auto"),
+        help="linear: a transfer function (default); the others fit a nonlinear Kautz model "
+        "to one io record (auto: the structure and, with --order auto, 2 or 4 poles chosen by "
+        "block cross-validation)",
+    )
+    model.add_argument("--save-model", metavar="FILE",
+                       help="with a nonlinear --model: write the fitted model as JSON")
     model.add_argument("--delay", action="store_true", help="estimate an input delay")
     model.add_argument("--fixed-delay", type=float, metavar="SECONDS",
                        help="use this input delay instead of estimating it")
@@ -102,6 +119,14 @@ def register(subparsers: argparse._SubParsersAction, common: argparse.ArgumentPa
     out = p.add_argument_group("output")
     out.add_argument("--plot", metavar="FILE",
                      help="write a figure of measured and simulated output for every record")
+    out.add_argument(
+        "--report", metavar="DIR",
+        help="write a validation report to DIR (made if missing): report.md and report.json "
+        "(the verdict: residuals white, residuals independent of input, with p-values; fits; "
+        "parameters with standard deviations; poles), compare.png, residuals.png (residual "
+        "autocorrelation and input cross-correlation with confidence bounds), bode.png and "
+        "step.png (with confidence bands from the parameter covariance)",
+    )
     out.add_argument(
         "--json", action="store_true",
         help="print one JSON object: num, den, poles, zeros ([re, im] pairs), gain, delay, "
@@ -137,7 +162,7 @@ def _check_flags(args: argparse.Namespace) -> int | str:
         if order != "auto" and args.zeros > order:
             raise CLIError(f"--zeros {args.zeros} exceeds --order {order}: the model would be "
                            "improper")
-    if args.max_order < 1:
+    if args.max_order is not None and args.max_order < 1:
         raise CLIError(f"--max-order must be >= 1; got {args.max_order}")
     if args.delay and args.fixed_delay is not None:
         raise CLIError("give only one of --delay (estimate) and --fixed-delay SECONDS")
@@ -165,7 +190,19 @@ def run(args: argparse.Namespace) -> int:
     from ..ident import TransferFunctionEstimator, load_records
 
     order = _check_flags(args)
+    if "," in args.input or "," in args.output:
+        if args.model != "linear":
+            raise CLIError(f"--model {args.model} fits one input and one output; several "
+                           "--input/--output columns fit a linear MIMO model (drop --model)")
+        from ._identify_mimo import run_mimo
+
+        return run_mimo(args, order)
+    if args.model != "linear":
+        from ._identify_nonlinear import run_nonlinear
+
+        return run_nonlinear(args, order)
     plot = check_output(args.plot, "--plot") if args.plot else None
+    report = _check_report_dir(args.report) if args.report else None
     records = load_records(args.data, input=args.input, output=args.output, time=args.time,
                            dt=args.dt, record=args.record, kind=args.kind)
     if args.validate_from is not None and not any(
@@ -193,11 +230,44 @@ def run(args: argparse.Namespace) -> int:
     if plot is not None:
         _plot(est, records, plot, args)
         summary["plot"] = str(plot)
+    if report is not None:
+        summary["report"] = _report(est, records, report, args)
     if args.json:
         print_json(summary)
         return 0
     _print_table(summary, model, records)
     return 0
+
+
+def _check_report_dir(text: str) -> Path:
+    """Fail early (before the fit) if the report folder cannot be made or written."""
+    out = Path(text)
+    if out.exists() and not out.is_dir():
+        raise CLIError(f"--report {text}: exists and is not a directory")
+    parent = out
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if parent.exists() and not parent.is_dir():
+        raise CLIError(f"--report {text}: {str(parent)!r} is not a directory")
+    if not os.access(parent if parent.exists() else Path("."), os.W_OK):
+        raise CLIError(f"--report {text}: {str(parent)!r} is not writable")
+    return out
+
+
+def _report(est: Any, records: list[Any], directory: Path,
+            args: argparse.Namespace) -> dict[str, Any]:
+    """Residual tests, confidence bands and the verdict, written to ``directory``."""
+    from ..ident.diagnostics import diagnose
+    from ..ident.diagnostics_plots import write_report
+
+    diag = diagnose(est, records)
+    paths = write_report(diag, directory, output_name=args.output)
+    v = diag.verdict()
+    return {"directory": str(directory), "files": sorted(paths),
+            "tested_on": v["tested_on"], "residuals_white": v["residuals_white"],
+            "whiteness_p_value": v["whiteness_p_value"],
+            "residuals_independent_of_input": v["residuals_independent_of_input"],
+            "input_p_value": v["input_p_value"]}
 
 
 def _plot(est: Any, records: list[Any], path: Any, args: argparse.Namespace) -> None:
@@ -270,6 +340,18 @@ def _print_table(summary: dict[str, Any], model: Any, records: list[Any]) -> Non
             v = row["validation_fit_percent"]
             lines.append(f"{row['n_poles']:>5}  {row['n_zeros']:>5}  {row['aic']:>9.2f}  "
                          f"{row['fit_percent']:>7.3f}  {'-' if v is None else f'{v:.3f}':>12}")
+    if "report" in summary:
+        rep = summary["report"]
+        yn = {True: "yes", False: "no", None: "n/a (no input variation to test against)"}
+        p_in = rep["input_p_value"]
+        lines += [
+            "",
+            f"residuals white ({rep['tested_on']} data): {yn[rep['residuals_white']]} "
+            f"(p = {rep['whiteness_p_value']:.3g})",
+            f"residuals independent of input: {yn[rep['residuals_independent_of_input']]}"
+            + ("" if p_in is None else f" (p = {p_in:.3g})"),
+            f"wrote the report to {rep['directory']}",
+        ]
     if "plot" in summary:
         lines.append(f"wrote {summary['plot']}")
     sys.stdout.write("\n".join(lines) + "\n")

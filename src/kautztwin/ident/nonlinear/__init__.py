@@ -1,0 +1,31 @@
+"""Nonlinear Kautz models: Wiener, Hammerstein, Wiener-Hammerstein and Kautz-Volterra.
+
+A discrete Kautz filter bank (:mod:`.filters`) carries the dynamics; static maps
+(:mod:`.maps`: polynomials, small MLPs) carry the nonlinearity.  Structures whose map is
+linear in its parameters (Kautz-Volterra, polynomial Hammerstein and Wiener) are fitted by
+variable projection (:mod:`.varpro`, numpy/scipy only); the MLP structures by gradient
+descent through the filter recursion (:mod:`.training`, torch, imported only when used).
+:func:`identify_nonlinear` (:mod:`.selection`) chooses structure and order by block
+cross-validation and averages the fold models; the fitted models (:mod:`.model`) simulate
+with numpy alone and save to JSON.
+"""
+
+from __future__ import annotations
+
+from .filters import filter_bank_states
+from .maps import MLPMap, PolynomialMap
+from .model import NonlinearKautzEnsemble, NonlinearKautzModel, load_nonlinear_model
+from .selection import NonlinearFit, identify_nonlinear
+from .training import TorchOptions
+
+__all__ = [
+    "MLPMap",
+    "NonlinearFit",
+    "NonlinearKautzEnsemble",
+    "NonlinearKautzModel",
+    "PolynomialMap",
+    "TorchOptions",
+    "filter_bank_states",
+    "identify_nonlinear",
+    "load_nonlinear_model",
+]
