@@ -90,6 +90,12 @@ def test_closed_loop_matches_in_process_run(hydraulic_server):
             u = float(np.clip(0.5 + 0.02 * (ref - r.y), -1.0, 1.0))
             r = link.step(u)
             readings.append(r)
+        # a node read over the link's own session (the twin service maps the plant's clock)
+        assert link.read("hydraulic.dt")[0] == 0.02
+        t_node, stamp = link.read(f"nsu={NAMESPACE_URI};s=hydraulic.t")
+        assert abs((stamp - server.origin_time) * server.speed - t_node) < 1e-3
+        with pytest.raises(DataError, match="cannot read 'hydraulic.nope'"):
+            link.read("hydraulic.nope")
     assert all(not rd.meta["dropout"] and rd.meta["link"] == "up" for rd in readings)
     t = np.array([rd.t for rd in readings])
     assert np.allclose(np.diff(t), 0.02)
@@ -107,6 +113,36 @@ def test_closed_loop_matches_in_process_run(hydraulic_server):
     on_time = [history[k].u == rd.meta["u"] for rd, k in zip(readings, ks, strict=True)
                if not rd.meta["late"]]
     assert len(on_time) >= 25 and np.mean(on_time) >= 0.8
+    # every sample is paired with the input the plant applied over its period (u_applied)
+    assert all(rd.meta["u_applied"] == rd.meta["u"] == history[k].u
+               for rd, k in zip(readings, ks, strict=True))
+
+
+def test_input_delay_estimate_matches_the_server(hydraulic_server):
+    """meta['input_delay']: the period an input sent now is applied over, from the link's view."""
+    server = hydraulic_server
+    with OPCUAPlant(server.endpoint, plant="hydraulic", connect_timeout=10) as link:
+        first = link.reset()
+        sent = []
+        for i in range(60):
+            u = 0.45 + 0.001 * i  # a new value every step: each one identifies its period
+            before = link.input_delay
+            r = link.step(u)
+            sent.append((u, before, r))
+    readings = [first] + [r for _, _, r in sent]
+    history = {s.k: s for s in server.history}
+    k0 = _source_k(server, first)
+    errors = []
+    for i, (u, estimate, _) in enumerate(sent):
+        applied = [k for k in range(k0 + i + 1, k0 + i + 40) if k in history
+                   and history[k].u == u]
+        if applied and i >= 10:  # after a few changes the wire's latency is learnt
+            actual = applied[0] - 1 - (k0 + i)  # period index minus the reading index
+            errors.append(estimate - actual)
+    assert len(errors) >= 25 and all(r.meta["k"] == j for j, r in enumerate(readings))
+    # speed 1 (50 periods a second): most inputs are applied over the next period or the one
+    # after; the estimate is right to the sample for most and never off by more than 2
+    assert np.mean(np.abs(errors) <= 1) >= 0.9 and max(np.abs(errors)) <= 2, errors
 
 
 # --------------------------------------------------------------------------- bad input
@@ -250,3 +286,64 @@ def test_username_password_passthrough():
             with pytest.raises(LinkError, match="refused the session"):
                 OPCUAPlant(server.endpoint, plant="first", username=user, password=password,
                            connect_timeout=5).reset()
+
+
+def _self_signed(tmp_path, name: str, uri: str, server: bool) -> tuple[str, str]:
+    """A self-signed application certificate and its key, PEM files in ``tmp_path``."""
+    from asyncua.crypto.cert_gen import (
+        dump_private_key_as_pem,
+        generate_private_key,
+        generate_self_signed_app_certificate,
+    )
+    from cryptography import x509
+    from cryptography.hazmat.primitives import serialization
+    from cryptography.x509.oid import ExtendedKeyUsageOID
+
+    key = generate_private_key()
+    use = ExtendedKeyUsageOID.SERVER_AUTH if server else ExtendedKeyUsageOID.CLIENT_AUTH
+    cert = generate_self_signed_app_certificate(
+        key, name, {}, [x509.UniformResourceIdentifier(uri), x509.DNSName("localhost")], [use])
+    cert_path, key_path = tmp_path / f"{name}.pem", tmp_path / f"{name}-key.pem"
+    cert_path.write_bytes(cert.public_bytes(serialization.Encoding.PEM))
+    key_path.write_bytes(dump_private_key_as_pem(key))
+    return str(cert_path), str(key_path)
+
+
+def test_sign_and_encrypt_with_username_password_and_one_line_errors(tmp_path, capsys):
+    """#11 item 2: username/password and the server's security policy (Basic256Sha256)."""
+    from kautztwin.cli.main import main
+
+    server_cert, server_key = _self_signed(tmp_path, "server", "urn:kautztwin:server", True)
+    client_cert, client_key = _self_signed(tmp_path, "client", "urn:freeopcua:client", False)
+    security = f"Basic256Sha256,SignAndEncrypt,{client_cert},{client_key}"
+    with PlantServer(FirstOrderPlant(), endpoint=LOOPBACK, users={"twin": "s3cret"},
+                     certificate=server_cert, private_key=server_key) as server:
+        with OPCUAPlant(server.endpoint, plant="first", username="twin", password="s3cret",
+                        security=security, connect_timeout=10) as link:
+            link.reset()
+            readings = [link.step(4.0) for _ in range(5)]
+        assert all(not r.meta["dropout"] for r in readings)
+        assert "ok" in [r.meta["write"] for r in readings]
+        # the server offers no unencrypted endpoint: refused at once, not after the timeout
+        t0 = time.monotonic()
+        with pytest.raises(LinkError, match="offers no endpoint with security None"):
+            OPCUAPlant(server.endpoint, plant="first", username="twin", password="s3cret",
+                       connect_timeout=8).reset()
+        assert time.monotonic() - t0 < 6
+        # a wrong password through `twin serve`: one line, exit 2
+        argv = ["twin", "serve", "--plant", server.endpoint, "--plant-username", "twin",
+                "--plant-security", security, "--plant-connect-timeout", "8",
+                "--out", str(tmp_path / "o")]
+        capsys.readouterr()
+        assert main([*argv, "--plant-password", "wrong"]) == 2
+        err = [line for line in capsys.readouterr().err.strip().splitlines()
+               if not line.startswith("{") and "level=" not in line]
+        assert len(err) == 1 and err[0].startswith("kautztwin: error: ") and (
+            "refused the session" in err[0] and "BadUserAccessDenied" in err[0]), err
+    with pytest.raises(DataError, match="both certificate and private_key"):
+        PlantServer(FirstOrderPlant(), certificate=server_cert)
+    with pytest.raises(DataError, match="unknown policy 'Basic128'"):
+        PlantServer(FirstOrderPlant(), certificate=server_cert, private_key=server_key,
+                    security=("Basic128",))
+    with pytest.raises(DataError, match="no such certificate"):
+        PlantServer(FirstOrderPlant(), certificate=tmp_path / "nope.pem", private_key=server_key)

@@ -121,7 +121,72 @@ def test_missing_config_file_is_exit_2(capsys, tmp_path):
     assert "does not exist" in capsys.readouterr().err
 
 
-def test_end_to_end_against_the_opcua_plant_server(tmp_path):
+#: drift events of the e2e plant, plant seconds: late enough that the twin (started within
+#: E2E_START_BY s of plant time, ~3 s wall at x10) has identified its model before the first
+E2E_EVENTS = (60.0, 90.0)
+E2E_START_BY = 35.0
+E2E_RECOVERY = 15.0  # the hydraulic profile's recovery window, s
+
+
+class _StderrLines:
+    """Read a subprocess's stderr in a thread (no full pipe); wait for a JSON log event."""
+
+    def __init__(self, proc: subprocess.Popen) -> None:
+        import threading
+
+        self._lines: list[str] = []
+        self._thread = threading.Thread(target=self._read, args=(proc,), daemon=True)
+        self._proc = proc
+        self._thread.start()
+
+    def _read(self, proc: subprocess.Popen) -> None:
+        for line in proc.stderr:
+            self._lines.append(line)
+
+    def text(self) -> str:
+        self._thread.join(0 if self._proc.poll() is None else 10)
+        return "".join(self._lines)
+
+    def wait_for(self, event: str, timeout: float) -> None:
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            if any(f'"event": "{event}"' in line for line in list(self._lines)):
+                return
+            assert self._proc.poll() is None, self.text()[-3000:]
+            time.sleep(0.05)
+        raise AssertionError(f"no {event!r} log event in {timeout} s")
+
+
+def _windows_after_recovery(store: Path, offset: float) -> list[list[float]]:
+    """Rolling sync fits (the report's windows) after each drift event's recovery window.
+
+    Segment ``i``: windows ending after event ``i`` + the recovery window and before
+    event ``i + 1``; segment 0 is the closed loop before the first event.
+    """
+    from kautztwin.twin.report import rolling_fit
+
+    with SQLiteHistory(store) as h:
+        run = h.runs()[-1]
+        m = h.measurements(run.run_id)
+        preds = {p.k + 1: float(p.y_pred[0]) for p in h.predictions(run.run_id)}  # one ahead
+    cfg = run.config["twin"]
+    k0 = int(round(cfg["ident_duration"] / cfg["dt"]))
+    y_pred = np.array([preds.get(int(k), np.nan) for k in m.k])
+    ends, fits = rolling_fit(m.y, y_pred, cfg["monitor_window"], cfg["monitor_stride"], k0)
+    t_end = m.t[ends - 1] + offset  # on the plant's clock
+    bounds = [-np.inf, *[e + E2E_RECOVERY for e in E2E_EVENTS]]
+    limits = [*E2E_EVENTS, np.inf]
+    return [fits[(t_end > lo) & (t_end <= hi)].tolist() for lo, hi in zip(bounds, limits,
+                                                                            strict=True)]
+
+
+def _end_to_end_run(tmp_path: Path) -> tuple[dict, list[list[float]], str]:
+    """OPC UA plant server (hydraulic, 40 % pole drift, x10) and twin serve against it.
+
+    Returns the run's metrics, the rolling sync fits per segment
+    (:func:`_windows_after_recovery`) and a line of figures; asserts the run itself
+    (clean stop, every sample stored, >= 60 s of plant time, re-identifications recorded).
+    """
     import asyncua  # noqa: F401  (a test extra: missing means a broken install)
 
     from kautztwin.service import PlantServer
@@ -129,46 +194,94 @@ def test_end_to_end_against_the_opcua_plant_server(tmp_path):
 
     logging.getLogger("asyncua").setLevel(logging.CRITICAL)
     speed = float(os.environ.get("KAUTZTWIN_E2E_SPEED", "10"))  # the acceptance asks >= 10
-    events = (30.0, 50.0)
-    plant = make_plant("hydraulic", drift=0.4, drift_events=events, seed=0)
+    plant = make_plant("hydraulic", drift=0.4, drift_events=E2E_EVENTS, seed=0)
     out = tmp_path / "e2e"
     store = out / "history.sqlite"
-    with PlantServer(plant, endpoint="opc.tcp://127.0.0.1:0", speed=speed) as server:
-        proc = serve("--plant", server.endpoint, "--plant-input-limits", "0.3,0.7",
-                      "--model-duration", "120", "--plant-drift-events", "30,50",
-                      "--plant-connect-timeout", "20", "--out", str(out))
-        try:
-            wait_committed(proc, store, 3100, 75)  # > 60 s of plant time on the twin's clock
+    end_t = E2E_EVENTS[-1] + E2E_RECOVERY + 12.0  # windows after the last recovery window
+    server = PlantServer(plant, endpoint=f"opc.tcp://127.0.0.1:{free_port()}", speed=speed)
+    # the twin first: the plant's clock starts when the twin is ready to connect (a loaded
+    # host takes seconds to start a Python process: tens of plant seconds at x10)
+    proc = serve("--plant", server.endpoint, "--plant-input-limits", "0.3,0.7",
+                 "--model-duration", "300", "--plant-drift-events",
+                 ",".join(f"{e:g}" for e in E2E_EVENTS), "--plant-connect-timeout", "30",
+                 "--out", str(out))
+    lines = _StderrLines(proc)
+    try:
+        lines.wait_for("connecting", 90)
+        with server:
+            served_from = time.monotonic()
+            deadline = time.monotonic() + 60 + end_t / speed
+            while server.k * server.dt < end_t:  # cheap polling: the server's plant time
+                assert time.monotonic() < deadline, f"plant time {server.k * server.dt:.1f} s"
+                assert proc.poll() is None, lines.text()[-3000:]
+                time.sleep(0.2)
+            served_speed = server.k * server.dt / (time.monotonic() - served_from)
             proc.send_signal(signal.SIGTERM)
-            stdout, stderr = proc.communicate(timeout=30)
-        finally:
-            if proc.poll() is None:
-                proc.kill()
-        served_s = server.k * server.dt
+            stdout = proc.communicate(timeout=60)[0]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    stderr = lines.text()
     assert proc.returncode == 0, stderr[-3000:]
     assert "twin serve opcua" in stdout
     log = log_events(stderr)
     stop = next(e for e in log if e["event"] == "stop")
-    assert stop["reason"] == "stop requested" and served_s >= 60
+    clock = next((e for e in log if e["event"] == "plant-clock"), {})
+    assert stop["reason"] == "stop requested"
+    assert "offset_s" in clock, f"the twin did not map the plant's clock: {clock}"
+    offset = float(clock["offset_s"])  # plant time of the twin's sample 0
+    assert offset <= E2E_START_BY, (
+        f"the twin started at plant time {offset:.1f} s: too late for the drift events")
     n, _, _ = store_state(store)
-    assert n == stop["n_samples"] >= 3100
+    assert n == stop["n_samples"] and n * 0.02 >= 60.0  # >= 60 s of plant time
     metrics = json.loads((out / "metrics.json").read_text())
-    figures = (f"speed x{speed:g}: {n} samples in {stop['wall_s']:.1f} s wall "
-               f"({stop['samples_per_s']:.0f}/s for {50 * speed:.0f}/s published), "
-               f"re-identifications {metrics['reidentifications']}, sync fit min after recovery "
-               f"{metrics['sync_fit_min_after_recovery']}, mean {metrics['sync_fit_mean']}, "
-               f"constraint violations {metrics['constraint_violations']}")
+    segments = _windows_after_recovery(store, offset)
+    figures = (f"speed x{speed:g} (the server ran at x{served_speed:.1f}): {n} samples in "
+               f"{stop['wall_s']:.1f} s wall "
+               f"({stop['samples_per_s']:.0f}/s for {50 * speed:.0f}/s published), twin from "
+               f"plant time {offset:.1f} s, drift at {E2E_EVENTS}; re-identifications "
+               f"{metrics['reidentifications']}; rolling sync fit min before the first drift "
+               f"{min(segments[0], default=float('nan')):.2f} %, after each recovery window "
+               f"{[round(min(f), 2) if f else None for f in segments[1:]]} %, mean "
+               f"{metrics['sync_fit_mean']:.2f} %; constraint violations "
+               f"{metrics['constraint_violations']} (max {metrics['max_violation']:.3g}); "
+               f"samples {metrics['samples']}")
     print(figures)
-    # What holds: the service attaches to an OPC UA plant, keeps up with it (the twin handles
-    # every sample the server publishes), runs for over 60 s of plant time, stores every sample
-    # it took, learns from the inputs the plant applied (u_applied), re-identifies after the
-    # drift, shuts down cleanly on SIGTERM and reports.
     assert metrics["n_samples"] == n, figures
+    # re-identifications recorded (in the store: model versions after the initial one)
     assert metrics["reidentifications"] >= 1, figures
-    # Not asserted, because it is not met yet (issue #11 stays open; figures in docs/service.md
-    # and printed above): rolling sync fit >= 95 % after each recovery window and 0 constraint
-    # violations at x10.  The inputs reach the plant 2 to 5 samples late (link latency at 500
-    # samples/s) and the MPC does not model that delay, so the loop oscillates.
+    with SQLiteHistory(store) as h:
+        assert len(h.model_versions(h.runs()[-1].run_id)) == metrics["reidentifications"] + 1
+    return metrics, segments, figures
+
+
+def test_end_to_end_against_the_opcua_plant_server(tmp_path):
+    """Acceptance of #11 (part): >= 60 s at x10 against the OPC UA plant server with drift.
+
+    Re-identifications recorded (checked in the run) and 0 constraint violations: the applied
+    input (its level and rate) and the measured output inside the configured limits over the
+    closed loop.  The sync-fit line of the acceptance is the slow test below.
+    """
+    metrics, segments, figures = _end_to_end_run(tmp_path)
+    assert metrics["constraint_violations"] == 0, figures
+    assert all(segments), figures  # the run covers every segment the sync check reads
+
+
+@pytest.mark.slow
+def test_end_to_end_sync_fit_after_each_recovery_window(tmp_path):
+    """Acceptance of #11: rolling sync fit >= 95 % after each recovery window (and before the
+    first drift), 0 constraint violations.
+
+    In the slow set: measured on a quiet 2-core machine it holds after the drift recoveries,
+    but the windows just after the closed loop starts (the twin catching up with the samples
+    queued while it identified) and the recovery time under CPU load from other processes
+    still miss it (issue #11 stays open on this line).
+    """
+    metrics, segments, figures = _end_to_end_run(tmp_path)
+    assert all(segments) and all(min(f) >= 95.0 for f in segments), figures
+    assert metrics["sync_fit_min_after_recovery"] >= 95.0, figures
+    assert metrics["constraint_violations"] == 0, figures
 
 
 def _wait_until(proc: subprocess.Popen, seconds: float) -> None:

@@ -112,6 +112,11 @@ def test_twin_serve_against_the_mqtt_plant_server(broker, tmp_path):
     finite = m.y[np.isfinite(m.y)]
     assert finite.size >= 0.95 * n
     assert np.mean([round(float(y), 9) in ys for y in finite]) >= 0.99
+    # each stored input is the one the plant applied over the sample's period (the sample's
+    # "u" on the wire), not the one the twin asked for: sample k's input shaped y(k + 1)
+    applied = {s.y: s.u for s in published}
+    pairs = [(m.u[i], applied[m.y[i + 1]]) for i in range(n - 1) if m.y[i + 1] in applied]
+    assert len(pairs) >= 0.9 * n and all(u == a for u, a in pairs)
     assert (out / "metrics.json").exists()
 
 

@@ -94,6 +94,12 @@ def register(subparsers: argparse._SubParsersAction, common: argparse.ArgumentPa
     s.add_argument("--noise", metavar="SIGMA",
                    help="sensor noise standard deviation in output units (default: the plant's)")
     s.add_argument("--seed", type=int, default=0, help="seed of the sensor noise (default: 0)")
+    s.add_argument("--user", action="append", metavar="NAME:PASSWORD",
+                   help="OPC UA: accept this user (repeatable); anonymous sessions are refused")
+    s.add_argument("--certificate", metavar="FILE",
+                   help="OPC UA: the server's certificate (PEM/DER); with --private-key the server "
+                   "offers only Basic256Sha256 Sign&Encrypt")
+    s.add_argument("--private-key", metavar="FILE", help="OPC UA: the certificate's private key")
     s.set_defaults(run=serve)
 
 
@@ -128,6 +134,18 @@ def _parse_drift(text: str | None) -> tuple[float, tuple[float, ...]]:
     if not events or any(not (math.isfinite(e) and e > 0) for e in events):
         raise CLIError(f"--drift: event times must be positive plant seconds, got {times!r}")
     return drift, events
+
+
+def _users(items: list[str] | None) -> dict[str, str] | None:
+    if not items:
+        return None
+    users = {}
+    for item in items:
+        name, sep, password = item.partition(":")
+        if not sep or not name or not password:
+            raise CLIError(f"--user must be NAME:PASSWORD, got {item!r}")
+        users[name] = password
+    return users
 
 
 def serve(args: argparse.Namespace) -> int:
@@ -168,10 +186,15 @@ def serve(args: argparse.Namespace) -> int:
     logging.getLogger("asyncua").setLevel(logging.ERROR)
     plant = make_plant(args.plant, drift=drift, drift_events=events, seed=args.seed, noise=noise)
     server: Any
+    users = _users(getattr(args, "user", None))
+    cert, key = getattr(args, "certificate", None), getattr(args, "private_key", None)
     if mqtt:
+        if users or cert or key:
+            raise CLIError("--user, --certificate and --private-key apply to --transport opcua")
         server = MQTTPlantServer(plant, broker=args.broker, speed=speed)
     else:
-        server = PlantServer(plant, endpoint=args.endpoint, speed=speed)
+        server = PlantServer(plant, endpoint=args.endpoint, speed=speed, users=users,
+                             certificate=cert, private_key=key)
     stop = threading.Event()
     with stop_on_signals(stop.set):
         try:

@@ -38,6 +38,10 @@ properties ``EngineeringUnits`` (``EUInformation``, UNECE unit codes) and
 
 The transport-independent stepping (pacing, catch-up after a restart, freeze) is
 :class:`~kautztwin.service.pacing.PacedPlant`, shared with the MQTT plant server.
+
+Size: :class:`PlantServer` is just over 400 lines because it builds the documented address
+space, checks writes, and runs the server (users, certificate and security policies) in
+its own thread and loop; about half of it is documentation.
 """
 
 from __future__ import annotations
@@ -48,13 +52,15 @@ import dataclasses
 import ipaddress
 import logging
 import math
+import os
 import socket
 import threading
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from datetime import UTC, datetime
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from ..exceptions import KautzTwinError
+from ..exceptions import DataError, KautzTwinError
 from ..twin.physical.opcua import NAMESPACE_URI, parse_endpoint
 from .pacing import Channel, PacedPlant, ServedSample, default_channels, unece_unit_id
 
@@ -90,6 +96,12 @@ def _import_asyncua() -> Any:
             "the OPC UA plant server needs asyncua: pip install 'kautztwin[service]'"
         ) from exc
     return asyncua
+
+
+def _security_policy_names() -> tuple[str, ...]:
+    """Names of asyncua's security policy types (``'Basic256Sha256_SignAndEncrypt'``...)."""
+    asyncua = _import_asyncua()
+    return tuple(member.name for member in asyncua.ua.SecurityPolicyType)
 
 
 def _format_endpoint(host: str, port: int) -> str:
@@ -172,6 +184,15 @@ class PlantServer(PacedPlant):
         (the plant's ``initial_command`` for the hydraulic drive) when omitted.
     users : mapping of str to str, optional
         Username/password pairs; when given, anonymous sessions are refused.
+    certificate, private_key : str or Path, optional
+        The server's application certificate (PEM or DER) and its private key
+        (PEM); with them the server offers only the secure ``security``
+        policies (no unencrypted endpoint).
+    security : sequence of str, default=('Basic256Sha256_SignAndEncrypt',)
+        The policies offered with a certificate: ``'<Policy>_<Mode>'`` with
+        ``Policy`` in ``Basic256Sha256``, ``Aes128Sha256RsaOaep``,
+        ``Aes256Sha256RsaPss`` and ``Mode`` ``Sign`` or ``SignAndEncrypt``
+        (asyncua's ``SecurityPolicyType`` names).
     history : int, default=100000
         How many :class:`ServedSample` records :attr:`history` keeps.
     start_timeout : float, default=60.0
@@ -223,10 +244,27 @@ class PlantServer(PacedPlant):
         output_channel: Channel | None = None,
         initial_input: float | None = None,
         users: Mapping[str, str] | None = None,
+        certificate: str | os.PathLike[str] | None = None,
+        private_key: str | os.PathLike[str] | None = None,
+        security: Sequence[str] = ("Basic256Sha256_SignAndEncrypt",),
         history: int = 100_000,
         start_timeout: float = 60.0,
     ) -> None:
         self._host, self._port = parse_endpoint(endpoint)
+        if (certificate is None) != (private_key is None):
+            raise DataError("give both certificate and private_key (or neither)")
+        for path in (certificate, private_key):
+            if path is not None and not Path(path).is_file():
+                raise DataError(f"no such certificate or key file: {str(path)!r}")
+        self.certificate = None if certificate is None else Path(certificate)
+        self.private_key = None if private_key is None else Path(private_key)
+        self.security = tuple(str(name) for name in security)
+        names = _security_policy_names()
+        bad = [name for name in self.security if name not in names or name == "NoSecurity"]
+        if bad or not self.security:
+            raise DataError(
+                f"security: unknown policy {bad[0] if bad else '(none)'!r}; use one of "
+                f"{', '.join(n for n in names if n != 'NoSecurity')}")
         super().__init__(plant, speed=speed, object_name=object_name,
                          input_channel=input_channel, output_channel=output_channel,
                          initial_input=initial_input, history=history)
@@ -377,7 +415,13 @@ class PlantServer(PacedPlant):
         await server.init()
         server.set_endpoint(self.endpoint)
         server.set_server_name(f"kautztwin plant server ({self.object_name})")
-        server.set_security_policy([ua.SecurityPolicyType.NoSecurity])
+        if self.certificate is not None and self.private_key is not None:
+            await server.load_certificate(str(self.certificate))
+            await server.load_private_key(str(self.private_key))
+            server.set_security_policy([getattr(ua.SecurityPolicyType, name)
+                                        for name in self.security])
+        else:
+            server.set_security_policy([ua.SecurityPolicyType.NoSecurity])
         if self.users:
             server.set_identity_tokens([ua.UserNameIdentityToken])
         idx = await server.register_namespace(self.namespace)

@@ -23,7 +23,6 @@ logged in the store.
 
 from __future__ import annotations
 
-import asyncio
 import json
 import logging
 import math
@@ -230,6 +229,9 @@ class TwinService:
         if cfg.estimator_path is not None:
             estimator = load_estimator(cfg.estimator_path)
         if p["kind"] in ("opcua", "mqtt"):
+            _log("connecting", link=p["kind"],
+                 endpoint=p["endpoint"] if p["kind"] == "opcua" else p["broker"],
+                 timeout_s=p["connect_timeout"])
             plant = self._opcua_plant() if p["kind"] == "opcua" else self._mqtt_plant()
             clock = Clock()  # the link paces the loop: each step waits for the next sample
             profile: Any = cfg.model.get("profile") or (
@@ -292,7 +294,7 @@ class TwinService:
             p["broker"], plant=p["object"], topic=p["topic"], topics=p["topics"], dt=p["dt"],
             input_limits=p["input_limits"], stale_periods=p["stale_periods"],
             connect_timeout=p["connect_timeout"], username=p["username"],
-            password=p["password"],
+            password=p["password"], on_outage=p["on_outage"], safe_input=p["safe_input"],
         )
         plant.connected = True  # a real plant: a resumed run continues, it is not re-simulated
         reset = plant.reset
@@ -498,41 +500,30 @@ class TwinService:
             _log("reconnect", reconnects=reconnects, k=state.k, t=state.t)
 
     def _map_plant_clock(self) -> None:
-        """Place the plant's own clock on the twin's (OPC UA: read the time node once)."""
+        """Place the plant's own clock on the twin's (OPC UA: read the time node once).
+
+        The node is read over the link's own session (a few tries: a loaded host may
+        answer late); a plant without it (a real PLC may have none) keeps the twin's clock.
+        """
         p = self.config.plant
         reading = self._reset_reading
         if reading is None:
             return
         node = p["time_node"] or f"{p['object']}.t"
-        try:
-            value, stamp = asyncio.run(self._read_time(node))
-        except Exception as exc:  # the node is optional: a real PLC may have none
-            _log("plant-clock", logging.DEBUG, node=node, error=" ".join(str(exc).split()))
+        error = ""
+        for _ in range(3):
+            try:
+                value, stamp = self.plant.read(node, timeout=max(2.0, p["connect_timeout"] / 3))
+                value = float(value)
+                break
+            except Exception as exc:  # the node is optional
+                error = " ".join(str(exc).split())
+        else:
+            _log("plant-clock", logging.WARNING, node=node, error=error)
             return
         origin = float(reading.meta.get("source_time", math.nan))
-        if not (math.isfinite(origin) and math.isfinite(value)):
+        if not (math.isfinite(origin) and math.isfinite(value) and math.isfinite(stamp)):
             return
         t_plant_at_reset = value + (origin - stamp) * self.plant.speed
         self._time_offset = t_plant_at_reset - self.twin.k * self.twin_config.dt
         _log("plant-clock", node=node, offset_s=self._time_offset)
-
-    async def _read_time(self, node: str) -> tuple[float, float]:
-        from asyncua import Client, ua
-
-        from ..twin.physical.opcua import NAMESPACE_URI
-
-        p = self.config.plant
-        client = Client(p["endpoint"], timeout=p["connect_timeout"])
-        if p["username"] is not None:
-            client.set_user(p["username"])
-        if p["password"] is not None:
-            client.set_password(p["password"])
-        async with client:
-            if "=" in node:
-                nid = ua.NodeId.from_string(node)
-            else:
-                idx = await client.get_namespace_index(p["namespace"] or NAMESPACE_URI)
-                nid = ua.NodeId(node, idx)
-            dv = await client.get_node(nid).read_data_value()
-        stamp = dv.SourceTimestamp or dv.ServerTimestamp
-        return float(dv.Value.Value), stamp.timestamp()

@@ -13,12 +13,34 @@ same for both and lives here:
   ``source_time``, ``latency``, ``queued``);
 * stale detection (no new sample within ``stale_periods`` sample periods) and
   the NaN reading per period while the link is down or the data stale;
-* the outage log (:class:`Outage`) and the counters.
+* the outage log (:class:`Outage`) and the counters;
+* the input delay estimate ``meta['input_delay']`` (see below).
+
+Input delay
+-----------
+An input the twin sends after reading sample ``s`` is applied by the plant
+over some later period ``p = s + d``: the loop may be behind the plant (samples
+queued), and the write needs its time on the wire.  The plant reports the input
+it applied over each period (``u_applied``), so the link measures ``d``: each
+change of the sent input is remembered with the plant's sample index at the
+time it was sent (from the wall clock, ``speed`` and the source timestamp of
+the first reading); when the applied input changes to that value at period
+``p``, ``p`` minus that index is one measurement of the write latency in
+samples.  The estimate for the next decision is the plant's sample index now
+plus the median of the recent latencies, minus the reading's index: the queue
+is seen at once, the wire's latency (and any constant clock offset between
+plant and twin) is learnt.  The twin's MPC predicts over that delay
+(:meth:`kautztwin.twin.prediction.MPCController.solve`).
 
 A subclass provides ``connect()``, ``_need_config()`` (make ``dt``, ``speed``
 and the input limits known), a ``_Sample`` with at least ``ts``, ``seq``,
 ``value``, ``status``, ``arrival`` and ``latency``, and calls the helpers
 below from its transport callbacks and its ``reset``/``step``.
+
+Size: :class:`SampleLink` is over 400 lines because it is the one home of what both
+transports share (queue, clock, readings, stale detection, outages, outage policy, the
+input delay); about half of it is documentation, and splitting it would put helpers that
+call each other under one lock into separate classes.
 """
 
 from __future__ import annotations
@@ -26,8 +48,10 @@ from __future__ import annotations
 import heapq
 import itertools
 import math
+import statistics
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -40,6 +64,8 @@ __all__ = ["LinkError", "Outage", "SampleLink"]
 
 #: shortest wall-clock silence that makes the data stale, s (scheduler jitter of a loaded host)
 STALE_FLOOR_S = 0.5
+#: write latencies (samples) the input delay estimate is the median of
+DELAY_MEMORY = 32
 
 _COUNTERS = ("samples", "dropouts", "stale", "link_down", "late", "out_of_order", "duplicates",
              "rejected_writes", "failed_writes", "reconnects")
@@ -172,6 +198,10 @@ class SampleLink:
         self._link_outage: Outage | None = None
         self._k = 0
         self._u = math.nan
+        self._sent: deque[tuple[int, float, float]] = deque(maxlen=4 * DELAY_MEMORY)
+        self._last_sent = math.nan
+        self._last_applied = math.nan
+        self._latencies: deque[float] = deque(maxlen=DELAY_MEMORY)
 
     def _init_policy(self, on_outage: str, safe_input: float | None) -> None:
         """Check and keep the outage policy (``'hold'`` or ``'safe'``) and the safe input."""
@@ -207,6 +237,32 @@ class SampleLink:
             lo, hi = self.input_limits
             return min(hi, max(lo, self.safe_input)), "safe"
         return None, "hold"
+
+    def _send_input(self, value: float, send: Callable[[float], str],
+                    behind: bool = False) -> str:
+        """Send ``value`` (or the outage policy's input) with ``send``; the ``write`` status.
+
+        ``send(target)`` puts the input on the wire and returns ``'sent'``,
+        ``'ok'`` or ``'failed: ...'``.  While the link is down or the data stale
+        the policy decides (``'not sent: holding (...)'`` or
+        ``'sent: safe input <u>'``); ``behind`` (newer samples wait and an input
+        went out within the period) sends nothing when the input is the one sent
+        last: ``'not sent: behind'`` (a new input always goes out).
+        A sent input is remembered for the input delay estimate.
+        """
+        target, policy = self._policy_input(value)
+        if behind and not policy and target == self._last_sent:
+            return "not sent: behind"
+        if target is None:
+            return f"not sent: holding ({'link down' if not self._link_up else 'stale data'})"
+        write = send(target)
+        if write in ("sent", "ok"):
+            self._note_sent(target)
+            if policy:
+                write = f"sent: {policy} input {target:g}"
+        elif write.startswith("failed"):
+            self.counters["failed_writes"] += 1
+        return write
 
     # ------------------------------------------------------------------ configuration
     def connect(self) -> Any:  # pragma: no cover - every link defines it
@@ -273,6 +329,56 @@ class SampleLink:
                 self._last_fresh = now
             heapq.heappush(self._heap, sample)
             self._cond.notify_all()
+
+    # ------------------------------------------------------------------ input delay
+    def _plant_index(self) -> float:
+        """The plant's sample index now, on the reading clock (NaN before :meth:`reset`)."""
+        if self._origin_ts is None:
+            return math.nan
+        return (time.time() - self._origin_ts) * self.speed / self.dt
+
+    def _note_sent(self, value: float) -> None:
+        """The input ``value`` went out for the period that starts at reading ``self._k``."""
+        if value != self._last_sent:
+            self._last_sent = value
+            self._sent.append((self._k, value, self._plant_index()))
+
+    def _note_applied(self, period: int, applied: float) -> None:
+        """The plant reports ``applied`` over ``period``: measure the latency of a change.
+
+        Sent changes older than the matched one were overtaken (coalesced) and
+        are forgotten (call with the lock held).
+        """
+        if not math.isfinite(applied) or applied == self._last_applied:
+            return
+        self._last_applied = applied
+        tol = 1e-9 * max(1.0, abs(applied))
+        for i, (k, value, index) in enumerate(self._sent):
+            if k <= period and abs(value - applied) <= tol:
+                if math.isfinite(index):
+                    self._latencies.append(period - index)
+                for _ in range(i + 1):
+                    self._sent.popleft()
+                return
+
+    def _input_delay(self, k: int) -> int:
+        """Samples from reading ``k`` to the period an input sent now will be applied over."""
+        index = self._plant_index()
+        if not math.isfinite(index):
+            return 0
+        latency = statistics.median(self._latencies) if self._latencies else 0.0
+        return max(0, int(round(index + latency)) - k)
+
+    @property
+    def input_delay(self) -> int:
+        """Current estimate of the input delay in samples (see the module notes).
+
+        Returns
+        -------
+        int
+        """
+        with self._cond:
+            return self._input_delay(self._k)
 
     # ------------------------------------------------------------------ readings
     def _grid_time(self, ts: float) -> float:
@@ -388,11 +494,14 @@ class SampleLink:
         if late:
             self.counters["late"] += 1
         u_eff = self._u if u_applied is None or not math.isfinite(u_applied) else u_applied
+        if u_applied is not None and self._k > 0:
+            self._note_applied(self._k - 1, u_applied)
         meta = dict(k=self._k, u=u_eff, u_applied=math.nan if u_applied is None else u_applied,
                     u_requested=u_req, write=write,
                     link="up" if self._link_up else "down", dropout=dropout, stale=False,
                     late=late, out_of_order=dropped, status=s.status, source_time=s.ts,
-                    latency=s.latency, queued=len(self._heap))
+                    latency=s.latency, queued=len(self._heap),
+                    input_delay=self._input_delay(self._k))
         return Reading(t, math.nan if dropout else s.value, meta)
 
     def _missing_reading(self, u_req: float, write: str, dropped: int, at: float) -> Reading:
@@ -411,7 +520,8 @@ class SampleLink:
             self.outages.append(self._stale_outage)
         meta = dict(k=self._k, u=self._u, u_requested=u_req, write=write, link=link,
                     dropout=True, stale=stale, late=False, out_of_order=dropped, status="",
-                    source_time=math.nan, latency=math.nan, queued=0)
+                    source_time=math.nan, latency=math.nan, queued=0,
+                    input_delay=self._input_delay(self._k))
         return Reading(self._last_t, math.nan, meta)
 
     def __enter__(self) -> Any:

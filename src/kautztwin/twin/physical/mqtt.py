@@ -22,7 +22,13 @@ What real links do, and what the link does about it (as the OPC UA link):
   flagged ``stale`` and ``dropout`` per period, an outage of kind ``'stale'``;
 * late and out-of-order samples: returned in source-timestamp order; one older
   than a sample already returned is dropped and counted;
-* NaN, inf, a non-number or a payload that is not JSON: a flagged dropout.
+* NaN, inf, a non-number or a payload that is not JSON: a flagged dropout;
+* an input that reaches the plant late: a sample's ``u`` (the input the plant
+  applied over the period that ended with it) becomes ``meta['u']`` /
+  ``meta['u_applied']``, and the input delay is estimated from it
+  (``meta['input_delay']``, see :mod:`~.link`);
+* while the link is down or the data stale, the input follows ``on_outage``
+  (``'hold'``: publish nothing; ``'safe'``: publish ``safe_input``).
 
 Inputs outside :attr:`~MQTTPlant.input_limits` are refused with a one-line
 :class:`~kautztwin.exceptions.DataError` before they are published.  ``paho-mqtt``
@@ -141,47 +147,51 @@ class _Sample:
     k_src: float  # sample index in the payload (NaN when absent)
     arrival: float  # time.monotonic()
     latency: float  # arrival wall time - source timestamp, s
+    u_applied: float = math.nan  # input applied over the period (NaN when absent)
 
 
 def decode_sample(payload: bytes,
-                  arrival_wall: float) -> tuple[float, float, float, str, float]:
+                  arrival_wall: float) -> tuple[float, float, float, str, float, float]:
     """Decode one output payload.
 
     Parameters
     ----------
     payload : bytes
-        The MQTT message body: ``{"t": .., "y": .., "k": .., "ts": ..}`` in JSON.
+        The MQTT message body: ``{"t": .., "y": .., "k": .., "u": .., "ts": ..}``
+        in JSON (``u``: the input applied over the period that ended with the sample).
     arrival_wall : float
         Wall-clock arrival time (POSIX s), the timestamp of a sample without one.
 
     Returns
     -------
     tuple
-        ``(ts, y, t, status, k)``: ``y`` is NaN unless finite, ``status`` is
+        ``(ts, y, t, status, k, u)``: ``y`` is NaN unless finite, ``status`` is
         ``'Good'``, ``'BadValue'`` (not a finite number) or ``'BadDecoding'``
-        (not a JSON object); ``t`` and ``k`` are NaN when absent.
+        (not a JSON object); ``t``, ``k`` and ``u`` are NaN when absent
+        (``u`` also when not finite).
 
     Examples
     --------
     >>> from kautztwin.twin.physical.mqtt import decode_sample
-    >>> decode_sample(b'{"t": 0.5, "y": 2.0, "k": 25, "ts": 100.0}', 101.0)
-    (100.0, 2.0, 0.5, 'Good', 25.0)
+    >>> decode_sample(b'{"t": 0.5, "y": 2.0, "k": 25, "u": 0.4, "ts": 100.0}', 101.0)
+    (100.0, 2.0, 0.5, 'Good', 25.0, 0.4)
     >>> decode_sample(b'{"y": NaN, "ts": 100.0}', 101.0)[1:4]
     (nan, nan, 'BadValue')
     """
     try:
         data = json.loads(payload)
     except (ValueError, UnicodeDecodeError):
-        return arrival_wall, math.nan, math.nan, "BadDecoding", math.nan
+        return arrival_wall, math.nan, math.nan, "BadDecoding", math.nan, math.nan
     if not isinstance(data, dict):
-        return arrival_wall, math.nan, math.nan, "BadDecoding", math.nan
+        return arrival_wall, math.nan, math.nan, "BadDecoding", math.nan, math.nan
     ts = _number(data.get("ts"))
     if not math.isfinite(ts):
         ts = arrival_wall
     y = _number(data.get("y"))
     status = "Good" if math.isfinite(y) else "BadValue"
+    u = _number(data.get("u"))
     return (ts, (y if status == "Good" else math.nan), _number(data.get("t")), status,
-            _number(data.get("k")))
+            _number(data.get("k")), u if math.isfinite(u) else math.nan)
 
 
 class MQTTPlant(SampleLink):
@@ -208,6 +218,12 @@ class MQTTPlant(SampleLink):
     stale_periods : float, default=3
         A sample period without a new sample this many times over makes the
         data stale (a flagged NaN reading instead of a wait).
+    on_outage : {'hold', 'safe'}, default='hold'
+        Input while the link is down or the data stale: ``'hold'`` publishes
+        nothing (the plant holds the last input it took), ``'safe'`` publishes
+        ``safe_input`` (when the broker still takes it).
+    safe_input : float, optional
+        The input of ``on_outage='safe'``.
     connect_timeout : float, default=10.0
         Seconds the first connection (and the first sample) may take before :class:`LinkError`.
     request_timeout : float, default=2.0
@@ -245,9 +261,13 @@ class MQTTPlant(SampleLink):
     Notes
     -----
     ``meta`` of each reading as :class:`~.opcua.OPCUAPlant`: ``k``, ``u`` (the
-    last input the broker took and the plant did not reject), ``u_requested``,
+    input the plant applied over the period: the sample's ``u`` when the
+    plant publishes it, else the last input the broker took and the plant did
+    not reject), ``u_applied`` (the sample's ``u``, NaN without), ``u_requested``,
     ``write`` (``'ok'``, ``'rejected: <reason>'`` when the plant's ack says so
-    before the reading, ``'failed: <error>'``, ``'not sent: link down'``),
+    before the reading, ``'failed: <error>'``, ``'not sent: link down'``; during
+    an outage ``'not sent: holding (...)'`` or ``'sent: safe input <u>'``),
+    ``input_delay`` (samples, see :mod:`~.link`),
     ``link``, ``dropout``, ``stale``, ``late`` (the sample was taken before the
     input was published or, with a plant that acknowledges inputs, before its
     ack for this input arrived or the ack's ``k``),
@@ -274,6 +294,8 @@ class MQTTPlant(SampleLink):
         input_limits: tuple[float, float] | None = None,
         speed: float | None = None,
         stale_periods: float = 3.0,
+        on_outage: str = "hold",
+        safe_input: float | None = None,
         connect_timeout: float = 10.0,
         request_timeout: float = 2.0,
         reconnect_delay: float = 0.1,
@@ -298,13 +320,16 @@ class MQTTPlant(SampleLink):
         self.topics = spec
         self._init_config(dt, speed, input_limits, stale_periods)
         self._init_link(connect_timeout, request_timeout, reconnect_delay, reconnect_max_delay)
+        self._init_policy(on_outage, safe_input)
         self.keepalive = max(1, int(keepalive))
         self.username, self.password, self.client_id = username, password, client_id
         self.plant_status = ""
         self._meta: dict[str, Any] | None = None
         self._acks: dict[int, tuple[str, float]] = {}
+        self._mine: dict[int, float] = {}  # inputs published, awaiting the plant's ack
         self._write_seq = itertools.count(1)
         self._origin_t = math.nan
+        self._published = math.nan  # the input of this step's publish (NaN: none)
 
     # ------------------------------------------------------------------ configuration
     def _need_config(self) -> None:
@@ -430,15 +455,19 @@ class MQTTPlant(SampleLink):
             elif topic == self.topics["ack"] and isinstance(data, dict):
                 seq = data.get("seq")
                 if isinstance(seq, int):
-                    self._acks[seq] = (str(data.get("status", "ok")), _number(data.get("k")))
+                    status = str(data.get("status", "ok"))
+                    self._acks[seq] = (status, _number(data.get("k")))
                     if len(self._acks) > 1000:
                         self._acks.pop(next(iter(self._acks)))
+                    if self._mine.pop(seq, None) is not None and status.startswith("rejected"):
+                        self.counters["rejected_writes"] += 1  # counted when the verdict comes
             self._cond.notify_all()
 
     def _on_sample(self, payload: bytes) -> None:
         now_wall, now = time.time(), time.monotonic()
-        ts, y, t_src, status, k_src = decode_sample(payload, now_wall)
-        self._queue(_Sample(ts, next(self._seq), y, status, t_src, k_src, now, now_wall - ts), now)
+        ts, y, t_src, status, k_src, u = decode_sample(payload, now_wall)
+        self._queue(_Sample(ts, next(self._seq), y, status, t_src, k_src, now, now_wall - ts, u),
+                    now)
 
     # ------------------------------------------------------------------ readings
     def _plant_time(self, s: _Sample) -> float:
@@ -479,16 +508,20 @@ class MQTTPlant(SampleLink):
         late = late or s.k_src < from_k  # the plant took the input after this sample
         if verdict.startswith("rejected"):
             write = verdict
-            self.counters["rejected_writes"] += 1
-        elif write == "ok":
-            self._u = u_req
-        return self._sample_reading(s, self._plant_time(s), dropped, u_req, write, late)
+        elif seq is not None and math.isfinite(self._published):
+            self._u = self._published
+        return self._sample_reading(s, self._plant_time(s), dropped, u_req, write, late,
+                                    s.u_applied)
 
     def _write(self, value: float, seq: int) -> str:
         client = self._client
         if client is None or not self._link_up:
             return "not sent: link down"
         payload = json.dumps({"u": value, "ts": time.time(), "seq": seq})
+        with self._cond:
+            self._mine[seq] = value
+            if len(self._mine) > 1000:
+                self._mine.pop(next(iter(self._mine)))
         info = client.publish(self.topics["u"], payload, qos=1)  # not waited for: no round trip
         if info.rc != 0:
             return f"failed: {_import_paho().error_string(info.rc)}"
@@ -518,16 +551,24 @@ class MQTTPlant(SampleLink):
         value = self._check_input(u, "published")
         seq = next(self._write_seq)
         written_at = time.monotonic()
-        write = self._write(value, seq)
-        if write.startswith("failed"):
-            self.counters["failed_writes"] += 1
+        self._published = math.nan
+
+        def send(target: float) -> str:
+            result = self._write(target, seq)
+            if result == "ok":
+                self._published = target
+            return result
+
+        write = self._send_input(value, send)
+        sent = seq if math.isfinite(self._published) else None
         return self._next_reading(value, write, lambda sample, dropped: self._real_reading(
-            sample, dropped, value, write, written_at, seq if write == "ok" else None))
+            sample, dropped, value, write, written_at, sent),
+            lambda sample: self._plant_time(sample))
 
     def _missing_reading(self, u_req: float, write: str, dropped: int, at: float) -> Reading:
         """A NaN reading: no sample in time (call with the lock held)."""
-        if write == "ok":
-            self._u = u_req
+        if math.isfinite(self._published):
+            self._u = self._published
         return super()._missing_reading(u_req, write, dropped, at)
 
     def close(self) -> None:

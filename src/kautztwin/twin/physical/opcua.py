@@ -224,8 +224,8 @@ class OPCUAPlant(SampleLink):
     ``'rejected: <status>'``, ``'failed: <error>'``, or ``'pending'`` while
     none has; ``'not sent: link down'``; during an outage
     ``'not sent: holding (...)'`` or ``'sent: safe input <u>'``;
-    ``'not sent: behind'`` when newer samples already wait: the caller is
-    behind: at most one input per sample period goes out, the newest), ``link``
+    ``'not sent: behind'`` when newer samples already wait (the caller is
+    behind) and the input is the one sent last, within a sample period), ``link``
     (``'up'``/``'down'``), ``dropout``, ``stale``, ``late`` (the sample was
     taken before this step's input was written: it does not reflect it),
     ``out_of_order`` (samples dropped since the previous reading), ``status``
@@ -397,7 +397,13 @@ class OPCUAPlant(SampleLink):
             try:
                 client = self._make_client()
                 if self.security:
-                    await client.set_security_string(self.security)
+                    try:
+                        await client.set_security_string(self.security)
+                    except Exception as exc:
+                        raise DataError(
+                            f"security {self.security!r}: {' '.join(str(exc).split()) or exc!r}"
+                            " (write 'Policy,Mode,client_cert,client_key[,server_cert]')"
+                        ) from None
                 budget = max(self.connect_timeout, 2 * self.request_timeout)
                 await asyncio.wait_for(client.connect(), budget)
                 await self._setup(client)
@@ -429,6 +435,13 @@ class OPCUAPlant(SampleLink):
                 if self._connections == 0 and type(exc).__name__ in _IDENTITY_ERRORS:
                     self._fatal = LinkError(
                         f"{self.endpoint} refused the session: {self._last_error}")
+                    self._ready.set()
+                    return
+                if self._connections == 0 and "No matching endpoints" in self._last_error:
+                    wanted = ",".join(self.security.split(",")[:2]) if self.security else "None"
+                    self._fatal = LinkError(
+                        f"{self.endpoint} offers no endpoint with security {wanted}: "
+                        f"{self._last_error}")
                     self._ready.set()
                     return
             finally:
@@ -729,20 +742,67 @@ class OPCUAPlant(SampleLink):
         value = self._check_input(u, "written")
         scale, offset = self._scale["u"]
         written_at = time.monotonic()
-        send, policy = self._policy_input(value)
-        if self._heap and not policy and written_at - self._w_sent < self.dt / self.speed:
-            write = "not sent: behind"  # newer samples wait; one went out within the period
-        elif send is None:
-            write = f"not sent: holding ({'link down' if not self._link_up else 'stale data'})"
-        else:
-            write = self._write((send - offset) / scale)
+
+        def send(target: float) -> str:
             self._w_sent = written_at
-            if policy and write == "sent":
-                write = f"sent: {policy} input {send:g}"
-        if write.startswith("failed"):
-            self.counters["failed_writes"] += 1
+            return self._write((target - offset) / scale)
+
+        # newer samples wait and an input went out within the period: the caller is behind
+        # (the same input is not sent again then)
+        behind = bool(self._heap) and written_at - self._w_sent < self.dt / self.speed
+        write = self._send_input(value, send, behind)
         return self._next_reading(value, write, lambda sample, dropped: self._real_reading(
             sample, dropped, value, write, written_at), lambda sample: self._grid_time(sample.ts))
+
+    def read(self, node: str, timeout: float | None = None) -> tuple[Any, float]:
+        """Read one node over the link's session: its value and source timestamp.
+
+        Parameters
+        ----------
+        node : str
+            A full OPC UA node id or a bare string id in ``namespace``.
+        timeout : float, optional
+            Seconds to wait (``request_timeout`` when omitted).
+
+        Returns
+        -------
+        tuple
+            ``(value, source_time)``, the time in POSIX seconds (the server's
+            timestamp when the value has no source timestamp).
+
+        Raises
+        ------
+        LinkError
+            If the link is down or the read does not answer in time.
+        DataError
+            If ``node`` is not a node id or the server refuses the read.
+        """
+        parsed = self._parse_node_id("read", str(node))
+        loop, client = self._loop, self._client
+        if loop is None or client is None or not self._link_up:
+            raise LinkError(f"{self.name}: the link to {self.endpoint} is down")
+
+        async def read() -> Any:
+            from asyncua import ua
+
+            kind, value = parsed
+            if kind == "bare":
+                value = ua.NodeId(value, await client.get_namespace_index(self.namespace))
+            elif isinstance(value, ua.ExpandedNodeId) and value.NamespaceUri:
+                idx = await client.get_namespace_index(value.NamespaceUri)
+                value = ua.NodeId(value.Identifier, idx, value.NodeIdType)
+            return await client.get_node(value).read_data_value()
+
+        wait = self.request_timeout if timeout is None else float(timeout)
+        try:
+            dv = asyncio.run_coroutine_threadsafe(read(), loop).result(wait)
+        except TimeoutError:
+            raise LinkError(f"{self.name}: reading {node!r} took over {wait:g} s") from None
+        except Exception as exc:
+            raise DataError(f"{self.name}: cannot read {node!r}: "
+                            f"{' '.join(str(exc).split()) or type(exc).__name__}") from None
+        stamp = dv.SourceTimestamp or dv.ServerTimestamp
+        return dv.Value.Value, (math.nan if stamp is None else stamp.timestamp())
 
     def close(self) -> None:
         """Disconnect and stop the background link (idempotent)."""

@@ -8,6 +8,7 @@ samples, and counts what it saw so the run report can show it.
 
 from __future__ import annotations
 
+import bisect
 import math
 from collections import deque
 from dataclasses import dataclass
@@ -23,6 +24,13 @@ from ...exceptions import DataError
 __all__ = ["SampleFlag", "SampleSanitizer", "SanitizedSample"]
 
 _MAD_TO_SIGMA = 1.482602218505602  # 1 / Phi^-1(3/4): MAD of a normal sample -> sigma
+
+
+def _median_sorted(values: list[float]) -> float:
+    """Median of sorted ``values`` (as ``numpy.median``: the mean of the middle two when even)."""
+    n = len(values)
+    mid = n // 2
+    return values[mid] if n % 2 else (values[mid - 1] + values[mid]) / 2.0
 _OUTLIER_ACTIONS = ("clip", "skip")
 
 
@@ -239,6 +247,7 @@ class SampleSanitizer:
     def reset(self) -> None:
         """Forget the window, the last value and timestamp, and zero the counters."""
         self._window: deque[float] = deque(maxlen=self.window)
+        self._sorted: list[float] = []  # the window's values in order (median without a sort)
         self._last_good = self.fill_value
         self._last_t: float | None = None
         self._run: list[float] = []
@@ -304,9 +313,9 @@ class SampleSanitizer:
             c["dropout"] += 1
             return self._hold(flags | SampleFlag.DROPOUT, x)
         if len(self._window) >= self.min_samples:
-            w = np.fromiter(self._window, dtype=float, count=len(self._window))
-            med = float(np.median(w))
-            scale = max(_MAD_TO_SIGMA * float(np.median(np.abs(w - med))), self.min_scale)
+            med = _median_sorted(self._sorted)
+            mad = _median_sorted(sorted([abs(v - med) for v in self._sorted]))
+            scale = max(_MAD_TO_SIGMA * mad, self.min_scale)
             dev = x - med
             if scale > 0 and abs(dev) > self.threshold * scale:
                 sign = 1 if dev > 0 else -1
@@ -325,13 +334,17 @@ class SampleSanitizer:
                 c["level_shift"] += 1
                 self._window.clear()
                 self._window.extend(self._run)
+                self._sorted = sorted(self._window)
                 self._run, self._run_sign = [], 0
                 self._last_good = x
                 if not flags:
                     c["ok"] += 1
                 return SanitizedSample(x, flags, x)
         self._run, self._run_sign = [], 0
+        if len(self._window) == self._window.maxlen:
+            del self._sorted[bisect.bisect_left(self._sorted, self._window[0])]
         self._window.append(x)
+        bisect.insort(self._sorted, x)
         self._last_good = x
         if not flags:
             c["ok"] += 1

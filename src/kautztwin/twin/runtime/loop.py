@@ -48,7 +48,15 @@ controller is rebuilt on it); step the plant; commit the sample (every
 ``commit_every`` samples in one transaction).  A live plant (a network link)
 reports the input it really applied over the period (``meta['u_applied']``):
 when it differs (the input arrived late) the sample, both twins' filter states
-and the MPC's take the applied one (:meth:`Updater.revise_last_input`).
+and the MPC's take the applied one (:meth:`Updater.revise_last_input`).  Its
+link also estimates the input delay (``meta['input_delay']``: samples from a
+decision to the period the plant applies it), over which the MPC predicts
+(:meth:`MPCController.solve`), and says how many newer samples already wait
+(``meta['queued']``): more than a few, and the loop is behind, holds its input
+and decides again once it has caught up.  It also holds its input until the plant reports the
+last new one applied, so no input is overtaken on the wire and jumped over
+(the rate limit holds at the plant): against a live plant the controller
+decides once per round trip of the link.
 
 **Resume.**  :meth:`DigitalTwin.start` with ``resume=True`` looks for an unfinished
 run with the same configuration in the store.  Its committed samples are
@@ -94,7 +102,13 @@ from .results import TwinRun, TwinState
 from .twins import catch_up, identification_info, identify_initial, make_sanitizer, make_twins
 from .versions import ModelVersions
 
-__all__ = ["DigitalTwin"]
+__all__ = ["MAX_INPUT_WAIT", "MAX_QUEUED", "DigitalTwin"]
+
+#: samples the loop holds its input for a live plant to report it applied, or to catch up
+#: (then it decides anyway)
+MAX_INPUT_WAIT = 50
+#: newer samples of a live plant already waiting that make the loop hold to catch up
+MAX_QUEUED = 5
 
 
 class DigitalTwin:
@@ -312,6 +326,8 @@ class DigitalTwin:
         self._ref = math.nan
         self._late_ticks = 0
         self._mpc_failures = 0
+        self._sent: tuple[float, int] | None = None  # a new input not yet seen applied
+        self._k_decided = -1  # the last sample the controller solved at
         self._drift_logged: set[float] = set()
         self._versions = ModelVersions(cfg, self.optimizer, rec, self.controller,
                                        on_estimator=self._set_estimator)
@@ -449,10 +465,12 @@ class DigitalTwin:
         else:
             self._ref = sp
         a["setpoint"][k], a["reference"][k] = sp, self._ref
-        if late:
+        if late or self._holding(k):
             v, d = self._v_prev, self._d_prev
         else:
-            res = self.controller.solve(y_fb, self._ref, self._v_prev)
+            self._k_decided = k
+            res = self.controller.solve(y_fb, self._ref, self._v_prev,
+                                        delay=self._input_delay(k))
             mpc_ms = 1e3 * res.solve_time
             a["mpc_ok"][k] = float(res.success)
             if not res.success:
@@ -460,6 +478,8 @@ class DigitalTwin:
             v, d = float(res.u_next), float(self._d[k])
         u = float(np.clip(v + d, cfg.mpc.u_min, cfg.mpc.u_max))
         self.controller.advance(v, d)
+        if u != self._u_prev and self._pairs_inputs(k):
+            self._sent = (u, k)  # a new input to a live plant: decide again once it is applied
         return u, v, d, mpc_ms
 
     def _update(self, k: int, t_k: float, u: float, y_raw: float) -> tuple[float, float, float]:
@@ -509,14 +529,85 @@ class DigitalTwin:
             return u
         if not self._reading.t + self._t_offset > self._record.arrays["t"][k]:
             return u  # a late sample (after NaN readings): its period is not this one
-        self._record.arrays["u"][k] = applied
+        a = self._record.arrays
+        a["u"][k] = applied
         if k >= self._k_cl and self.config.controlled and self.controller.model is not None:
+            a["command"][k] += applied - u  # a rebuilt controller starts from what was applied
             self.controller.revise_last_input(applied - u)
         if k >= self._k_cl:
             for upd in (self.updater, self.static):
                 if upd is not None:
                     upd.revise_last_input(applied)
         return applied
+
+    def _holding(self, k: int) -> bool:
+        """Whether the controller holds its input at sample ``k`` of a live plant (no solve).
+
+        It holds while the last new input has not been applied (:meth:`_awaiting`)
+        and while it is behind (:meth:`_behind`), in both cases for at most
+        :data:`MAX_INPUT_WAIT` samples since its last decision.
+        """
+        if self._awaiting(k):
+            return True
+        return self._behind(k) and k - self._k_decided <= MAX_INPUT_WAIT
+
+    def _behind(self, k: int) -> bool:
+        """Whether more than :data:`MAX_QUEUED` newer samples of a live plant already wait.
+
+        The loop is then behind the plant (``meta['queued']``, e.g. after the
+        initial identification, or on a stalled host): this sample is history
+        for the controller, whose decision would reach the plant after the newer
+        ones are taken.  It holds its input until it has caught up, so it
+        decides on recent samples and catches up faster; the update module
+        still takes every sample.  A short queue (samples delivered in batches,
+        a scheduling hiccup) is part of the input delay the MPC predicts over.
+        """
+        if self._replay.active(k):
+            return False
+        queued = self._reading.meta.get("queued", 0)
+        return isinstance(queued, int | float) and queued > MAX_QUEUED
+
+    def _pairs_inputs(self, k: int) -> bool:
+        """Whether the plant is live and reports the input it applied (``meta['u_applied']``)."""
+        if self._replayable or self._replay.active(k):
+            return False
+        return math.isfinite(float(self._reading.meta.get("u_applied", math.nan)))
+
+    def _awaiting(self, k: int) -> bool:
+        """Whether the last new input sent to a live plant has not been applied yet.
+
+        A link may overtake an input with a newer one (one write in flight, the
+        newest next); the plant would then jump over it, by more than the rate
+        limit allows.  The loop holds its input until the plant reports it applied
+        the last one (``meta['u_applied']``), so every input it decides is applied
+        for at least a period, in order: the decisions come once per round trip of
+        the link (at most :data:`MAX_INPUT_WAIT` samples apart, should an input
+        never arrive: refused, lost).  Holding keeps the excitation dither too:
+        an input changes only when the loop decides.
+        """
+        if self._sent is None:
+            return False
+        value, k_sent = self._sent
+        applied = float(self._reading.meta.get("u_applied", math.nan))
+        if abs(applied - value) <= 1e-9 * max(1.0, abs(value)) or k - k_sent > MAX_INPUT_WAIT:
+            self._sent = None
+            return False
+        return True
+
+    def _input_delay(self, k: int) -> int:
+        """Samples from a decision to the period a live plant applies it (its link's estimate).
+
+        ``meta['input_delay']`` of the current reading (0 for a simulated
+        plant, a replayed sample, or a link that does not estimate it).
+        """
+        if self._replay.active(k):
+            return 0
+        value = self._reading.meta.get("input_delay", 0)
+        try:
+            delay = int(value)
+        except (TypeError, ValueError):
+            return 0
+        return max(0, delay)
 
     def _recorded_input(self, k: int) -> float:
         u = getattr(self.plant, "u", None)
