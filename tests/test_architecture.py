@@ -31,7 +31,7 @@ TWIN_LAYERS = [
     {"prediction"},
     {"optimization"},
     {"runtime"},
-    {"report"},
+    {"report", "fleet"},
 ]
 
 

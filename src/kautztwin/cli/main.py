@@ -16,7 +16,19 @@ from collections.abc import Sequence
 
 from .. import __version__
 from ..exceptions import KautzTwinError
-from . import _approx, _basis, _identify, _plant, _reproduce, _sensitivity, _simulate, _train, _twin
+from . import (
+    _approx,
+    _basis,
+    _export,
+    _fleet,
+    _identify,
+    _plant,
+    _reproduce,
+    _sensitivity,
+    _simulate,
+    _train,
+    _twin,
+)
 from ._common import CLIError, join_option_values
 
 __all__ = ["build_parser", "main"]
@@ -94,7 +106,9 @@ def build_parser() -> argparse.ArgumentParser:
     _train.register(sub, common)
     _reproduce.register(sub, common)
     _identify.register(sub, common)
+    _export.register(sub, common)
     _twin.register(sub, common)
+    _fleet.register(sub, common)
     _plant.register(sub, common)
     return parser
 

@@ -1,0 +1,387 @@
+r"""The update module of a fleet: recursive least squares as arrays, re-identification per asset.
+
+:class:`FleetUpdater` is :class:`~kautztwin.twin.Updater` (synchronous
+accurate path, no DNN estimator) for ``n_assets`` twins of one structure:
+the fast path (:class:`~kautztwin.twin.update.RecursiveKautzEstimator`'s
+recursion with forgetting, trace clamp and symmetrisation), the frozen
+prediction judged by the monitor, the buffer of recent samples and the
+recovery policy run as ``(n_assets, ...)`` array operations.  The accurate
+path is the updater's: the same window (:meth:`_prepare`), the same fit
+(``_fit_window`` of :mod:`kautztwin.twin.update.worker`, in a
+:class:`concurrent.futures` pool for all the assets due at one sample) and
+the same validation on held-out samples (:meth:`_judge`).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ...approx.model import KautzModel
+from ...basis import KautzBasis
+from ...ident.kautz_oe import continuous_poles, filter_states
+from ...metrics import fit_percent_or_nan
+from ..digital import DigitalModel, discretize_model
+from ..update import Updater
+from ..update.worker import _ReidJob
+from .assets import reid_job, unpack_fit
+from .sync import FleetMonitor
+
+__all__ = ["FleetUpdater", "ReidOutcome"]
+
+
+@dataclass(frozen=True)
+class ReidOutcome:
+    """One re-identification attempt of one asset.
+
+    Parameters
+    ----------
+    asset : int
+    k : int
+        The updater's sample counter when it was decided.
+    accepted : bool
+    reason : str
+    fit_candidate, fit_current : float
+        Held-out fits, percent (NaN when the attempt was refused for too few samples).
+    version : int
+        The asset's model version afterwards.
+    """
+
+    asset: int
+    k: int
+    accepted: bool
+    reason: str
+    fit_candidate: float
+    fit_current: float
+    version: int
+
+
+class FleetUpdater:
+    """Fast path, monitor and recovery policy of ``n_assets`` twins.
+
+    Built from one :class:`~kautztwin.twin.Updater` per asset (their initial
+    models, offsets, extra poles and settings; every asset must have the same
+    number of basis functions and the same settings).
+
+    Parameters
+    ----------
+    updaters : sequence of Updater
+        The assets' freshly built updaters (not stepped yet).
+    monitor : FleetMonitor
+        The fleet's monitor.
+    map_fn : callable, optional
+        ``map_fn(function, jobs) -> results`` for the re-identification fits
+        (a pool's ``map``); the built-in ``map`` when omitted.
+
+    Attributes
+    ----------
+    digital_models : list of DigitalModel
+        Each asset's current version.
+    counts : dict of str to ndarray
+        ``attempts`` and ``accepted`` per asset.
+    """
+
+    def __init__(
+        self, updaters: Sequence[Updater], monitor: FleetMonitor,
+        map_fn: Callable[..., Any] | None = None,
+    ) -> None:
+        u0 = updaters[0]
+        N = len(updaters)
+        est0 = u0.estimator_
+        n = est0.basis_.n_functions
+        self.n_assets, self.n = N, n
+        self.dt = u0.dt
+        self.input_offset = u0.input_offset
+        self.delta = u0.delta
+        self.lam = float(est0.forgetting)
+        self.max_trace = float(est0.max_trace)
+        self.horizon = u0.horizon
+        self.fast_update = u0.fast_update
+        self.reidentify_enabled = u0.reidentify_enabled
+        for name in ("reid_samples", "min_reid_samples", "reid_every", "max_attempts", "burn_in",
+                     "validation_fraction", "min_improvement", "min_candidate_fit", "min_rate",
+                     "max_iter"):
+            setattr(self, name, getattr(u0, name))
+        self.theta = np.zeros((N, n + 1))
+        self.P = np.zeros((N, n + 1, n + 1))
+        self.phi = np.zeros((N, n + 1))
+        self.A = np.zeros((N, n, n))
+        self.B = np.zeros((N, n))
+        self.wide_basis: list[KautzBasis] = []
+        self.extra_poles = [u.extra_poles for u in updaters]
+        self.digital_models: list[DigitalModel] = []
+        self.core_n = np.zeros(N, dtype=np.int64)
+        for i, u in enumerate(updaters):
+            est = u.estimator_
+            if est.basis_.n_functions != n or not est.fit_offset:
+                raise ValueError("every asset's twin needs the same number of basis functions")
+            self.theta[i] = est.parameters_
+            self.P[i] = est.covariance_
+            self.phi[i, :n] = est.state_
+            self.phi[i, n] = 1.0
+            self.A[i] = np.array(est.basis_.A)
+            self.B[i] = np.array(est.basis_.B).reshape(-1)
+            self.wide_basis.append(est.basis_)
+            self.digital_models.append(u.digital_model)
+            self.core_n[i] = u._core_n
+        self.n_updates = np.zeros(N, dtype=np.int64)
+        self.theta_frozen = self.theta.copy()
+        self.monitor = monitor
+        self.L = self.reid_samples + self.burn_in
+        self.buf_u = np.zeros((N, self.L))
+        self.buf_y = np.zeros((N, self.L))
+        self.buf_n = 0  # samples in the buffers (the same for every asset)
+        self.buf_pos = 0  # where the next one goes
+        self.k = 0
+        self.rec_on = np.zeros(N, dtype=bool)
+        self.rec_change = np.zeros(N, dtype=np.int64)
+        self.rec_next = np.zeros(N, dtype=np.int64)
+        self.rec_attempts = np.zeros(N, dtype=np.int64)
+        self.model_k = np.zeros(N, dtype=np.int64)
+        self.counts = {"attempts": np.zeros(N, dtype=np.int64),
+                       "accepted": np.zeros(N, dtype=np.int64)}
+        self.map_fn = map_fn if map_fn is not None else map
+        self.reid_seconds = 0.0  # wall time of the accurate path so far
+
+    # ------------------------------------------------------------------ the fast path
+    def predict(self) -> NDArray[np.float64]:
+        """A-priori predictions ``theta . phi`` of the current sample, every asset."""
+        return np.einsum("bi,bi->b", self.theta, self.phi)
+
+    def step(
+        self, u: NDArray, y: NDArray, clean: NDArray[np.bool_]
+    ) -> tuple[NDArray, NDArray, list[ReidOutcome], NDArray, NDArray, NDArray]:
+        """One sample of every asset (the :meth:`Updater.step` of each).
+
+        Parameters
+        ----------
+        u : ndarray of shape (n_assets,)
+            Inputs applied at this sample.
+        y : ndarray of shape (n_assets,)
+            Measured outputs.
+        clean : ndarray of bool
+            Samples the sanitiser passed (the others only advance the filters).
+
+        Returns
+        -------
+        y_pred_frozen : ndarray
+            The monitored predictions.
+        y_pred : ndarray
+            The a-priori predictions with the live parameters.
+        outcomes : list of ReidOutcome
+            Re-identification attempts decided at this sample.
+        evaluated, desync, resync : ndarray of int
+            Monitor results (see :meth:`FleetMonitor.update`).
+        """
+        n = self.n
+        th, P, phi = self.theta, self.P, self.phi
+        y_pred = np.einsum("bi,bi->b", th, phi)
+        y_frozen = np.einsum("bi,bi->b", self.theta_frozen, phi)
+        yv = np.where(clean, y, np.nan)
+        upd = clean & ~np.isnan(y) if self.fast_update else np.zeros_like(clean)
+        rows = np.flatnonzero(upd)
+        if rows.size:
+            Pr, ph = P[rows], phi[rows]
+            Pphi = np.einsum("bij,bj->bi", Pr, ph)
+            denom = self.lam + np.einsum("bi,bi->b", ph, Pphi)
+            ok = (denom > 0) & np.isfinite(denom)
+            g = Pphi / np.where(ok, denom, 1.0)[:, None]
+            err = y[rows] - y_pred[rows]
+            th[rows] = np.where(ok[:, None], th[rows] + g * err[:, None], th[rows])
+            Pn = Pr - g[:, :, None] * Pphi[:, None, :]
+            if self.lam < 1.0:
+                Pn = Pn / self.lam
+            self.n_updates[rows] += ok
+            sym = ok & (self.n_updates[rows] % 64 == 0)
+            if sym.any():
+                Ps = Pn[sym]
+                Pn[sym] = (Ps + np.swapaxes(Ps, 1, 2)) * 0.5
+            tr = np.trace(Pn, axis1=1, axis2=2)
+            clamp = tr > self.max_trace
+            Pn[clamp] *= (self.max_trace / tr[clamp])[:, None, None]
+            reset = ~ok | (~clamp & ~(tr > 0))
+            Pn[reset] = self.delta * np.eye(n + 1)
+            P[rows] = Pn
+        phi[:, :n] = np.einsum("bij,bj->bi", self.A, phi[:, :n]) + self.B * (
+            u - self.input_offset)[:, None]
+        # the ring buffer of recent samples
+        self.buf_u[:, self.buf_pos] = u
+        self.buf_y[:, self.buf_pos] = yv
+        self.buf_pos = (self.buf_pos + 1) % self.L
+        self.buf_n = min(self.buf_n + 1, self.L)
+        ev, desync, resync, _ = self.monitor.update(y, y_frozen, clean)
+        before = self.k
+        self.k += 1
+        if self.k // self.horizon != before // self.horizon:
+            self.theta_frozen = self.theta.copy()
+        # events: a resync ends a recovery, a desync starts one
+        self.rec_on[resync] = False
+        if self.reidentify_enabled and desync.size:
+            start = desync[~self.rec_on[desync]]
+            mon = self.monitor
+            first_bad_end = self.k - (mon.n_consecutive - 1) * mon.stride
+            change = np.maximum(np.maximum(first_bad_end - mon.window // 2, self.model_k[start]),
+                                0)
+            self.rec_on[start] = True
+            self.rec_change[start] = change
+            self.rec_next[start] = change + self.min_reid_samples
+            self.rec_attempts[start] = 0
+        due = np.flatnonzero(self.rec_on & (self.k >= self.rec_next))
+        t0 = time.perf_counter()
+        outcomes = self.reidentify(due) if due.size else []
+        self.reid_seconds += time.perf_counter() - t0
+        if due.size:
+            self.rec_attempts[due] += 1
+            self.rec_next[due] = self.k + self.reid_every
+            self.rec_on[due[self.rec_attempts[due] >= self.max_attempts]] = False
+        return y_frozen, y_pred, outcomes, ev, desync, resync
+
+    # ------------------------------------------------------------------ the accurate path
+    def _prepare(self, i: int) -> _ReidJob | ReidOutcome:
+        """The window of asset ``i``'s attempt (as :meth:`Updater._prepare`), or its refusal."""
+        self.counts["attempts"][i] += 1
+        size = self.buf_n
+        n_samples = self.reid_samples
+        if self.rec_on[i]:
+            n_samples = min(n_samples, self.k - int(self.rec_change[i]))
+        n_w = min(int(n_samples), size)
+        h0 = max(0, size - n_w - self.burn_in)
+        u_all, y_all = self.buffer(i)
+        u, y = u_all[h0:], y_all[h0:]
+        w0 = u.size - n_w
+        n_val = int(self.validation_fraction * n_w)
+        n_est = u.size - n_val
+        n_par = int(self.core_n[i]) + 1
+        usable = int(np.isfinite(y[w0:n_est]).sum())
+        if n_val < 10 or usable < 4 * n_par or np.isfinite(y[n_est:]).sum() < 10:
+            return ReidOutcome(
+                i, self.k, False,
+                f"too few samples: {usable} usable for estimation, {n_val} for validation",
+                math.nan, math.nan, self.digital_models[i].version)
+        u.setflags(write=False)
+        y.setflags(write=False)
+        poles = continuous_poles(self.wide_basis[i])[: int(self.core_n[i])]
+        return _ReidJob(u=u, y=y, w0=w0, n_est=n_est, n_val=n_val, poles=poles, dt=self.dt,
+                        input_offset=self.input_offset, min_rate=self.min_rate,
+                        max_iter=self.max_iter, k=self.k)
+
+    def buffer(self, i: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Asset ``i``'s buffered inputs and outputs in time order (copies; NaN: unused sample).
+
+        Parameters
+        ----------
+        i : int
+
+        Returns
+        -------
+        u, y : ndarray of shape (n_buffered,)
+        """
+        if self.buf_n < self.L:
+            return self.buf_u[i, : self.buf_n].copy(), self.buf_y[i, : self.buf_n].copy()
+        p = self.buf_pos
+        return (np.concatenate([self.buf_u[i, p:], self.buf_u[i, :p]]),
+                np.concatenate([self.buf_y[i, p:], self.buf_y[i, :p]]))
+
+    def reidentify(self, assets: NDArray[np.intp]) -> list[ReidOutcome]:
+        """Re-identification attempts of ``assets`` now: fits in the pool, judged here.
+
+        Parameters
+        ----------
+        assets : ndarray of int
+
+        Returns
+        -------
+        list of ReidOutcome
+        """
+        out: list[ReidOutcome] = []
+        jobs: list[tuple[int, _ReidJob]] = []
+        for i in assets.tolist():
+            job = self._prepare(i)
+            if isinstance(job, ReidOutcome):
+                out.append(job)
+            else:
+                jobs.append((i, job))
+        results = list(self.map_fn(reid_job, [j for _, j in jobs]))
+        for (i, job), res in zip(jobs, results, strict=True):
+            assert res is not None
+            fit = unpack_fit(res)
+            out.append(self._judge(i, fit.model, fit.offset, job))
+        out.sort(key=lambda o: o.asset)
+        return out
+
+    def _widen(self, i: int, model: KautzModel) -> KautzModel:
+        extra = self.extra_poles[i]
+        if extra.size == 0:
+            return model
+        poles = np.concatenate([model.basis.poles, np.exp(extra * self.dt)])
+        basis = KautzBasis(poles, dt=self.dt, delayed=True)
+        return KautzModel(basis, np.concatenate([model.coefficients, np.zeros(extra.size)]))
+
+    def _judge(self, i: int, model: KautzModel, offset: float, job: _ReidJob) -> ReidOutcome:
+        """Validate asset ``i``'s candidate on the held-out samples (as :meth:`Updater._judge`)."""
+        n = self.n
+        u, y, n_val = job.u, job.y, job.n_val
+        v = u - self.input_offset
+        Xc = filter_states(model.basis, v)
+        yc = Xc[:-1] @ model.coefficients + offset
+        ym = filter_states(self.wide_basis[i], v)[:-1] @ self.theta[i, :n].copy() + float(
+            self.theta[i, n])
+        sl = slice(u.size - n_val, u.size)
+        fit_c, fit_m = fit_percent_or_nan(y[sl], yc[sl]), fit_percent_or_nan(y[sl], ym[sl])
+        better = math.isfinite(fit_c) and (
+            not math.isfinite(fit_m) or fit_c > fit_m + self.min_improvement)
+        version = self.digital_models[i].version
+        if not better:
+            return ReidOutcome(i, self.k, False,
+                               f"candidate fit {fit_c:.2f} % does not beat the current "
+                               f"{fit_m:.2f} % on {n_val} held-out samples", fit_c, fit_m, version)
+        floor = self.min_candidate_fit
+        if floor is not None and not fit_c >= floor:
+            return ReidOutcome(i, self.k, False,
+                               f"candidate fit {fit_c:.2f} % on {n_val} held-out samples is below "
+                               f"min_candidate_fit = {floor:g} %", fit_c, fit_m, version)
+        dm = self.digital_models[i].with_update(model, "reidentification", fit_c)
+        self.digital_models[i] = dm
+        self.core_n[i] = model.n_functions
+        state = Xc[-1]
+        wide = self._widen(i, model)
+        if wide is not model:
+            state = filter_states(wide.basis, u - self.input_offset)[-1]
+        md = discretize_model(wide, self.dt)
+        if md.n_functions != n:
+            raise ValueError(f"asset {i}: the re-identified model changed the basis size")
+        self.wide_basis[i] = md.basis
+        self.A[i] = np.array(md.basis.A)
+        self.B[i] = np.array(md.basis.B).reshape(-1)
+        self.theta[i, :n] = np.array(md.coefficients)
+        self.theta[i, n] = float(offset)
+        self.P[i] = self.delta * np.eye(n + 1)
+        self.phi[i, :n] = state
+        self.phi[i, n] = 1.0
+        self.n_updates[i] = 0
+        self.theta_frozen[i] = self.theta[i]
+        self.monitor.clear_window(i)
+        self.model_k[i] = self.k
+        self.counts["accepted"][i] += 1
+        return ReidOutcome(i, self.k, True,
+                           f"candidate fit {fit_c:.2f} % beats the current {fit_m:.2f} % on "
+                           f"{n_val} held-out samples", fit_c, fit_m, dm.version)
+
+    @property
+    def offsets(self) -> NDArray[np.float64]:
+        """Current output offsets ``d`` of every asset."""
+        return self.theta[:, self.n].copy()
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held in the arrays (the monitor's not included)."""
+        return int(sum(a.nbytes for a in (
+            self.theta, self.P, self.phi, self.A, self.B, self.theta_frozen, self.buf_u,
+            self.buf_y, self.n_updates, self.rec_on, self.rec_change, self.rec_next,
+            self.rec_attempts, self.model_k, self.core_n)))
