@@ -136,3 +136,79 @@ def test_simulation_pipeline_small(tmp_path):
 def test_reproduce_simulation_quick_cli(tmp_path):
     assert main(["reproduce", "simulation", "--quick", "--quiet", "--out", str(tmp_path)]) == 0
     assert json.loads((tmp_path / "metrics.json").read_text())["setup"]["quick"] is True
+
+
+# --------------------------------------------------------------------------- train --family
+FAMILY = """
+[plant]
+zeros = [-3.0]
+poles = [-1.0, "-0.5+1.5j", "-0.5-1.5j"]
+gain = 2.0
+[noise]
+level = 0.05
+color = "drift"
+[record]
+n_samples = 80
+[training]
+n_records = 120
+n_calibration = 30
+n_validation = 4
+max_epochs = 1
+[estimator]
+hidden = [16]
+n_features = 8
+pretrain_epochs = 2
+"""
+
+
+def test_train_family_writes_a_calibrated_model_and_a_report(tmp_path, capsys):
+    torch.set_num_threads(1)
+    (tmp_path / "fam.toml").write_text(FAMILY)
+    out = tmp_path / "run"
+    assert main(["train", "--family", str(tmp_path / "fam.toml"), "--out", str(out),
+                 "--quiet"]) == 0
+    text = capsys.readouterr().out
+    assert "oracle" in text and "90 % bands cover" in text
+    report = json.loads((out / "report.json").read_text())
+    v = report["validation"]
+    assert v["n_records"] == 4 and len(v["oracle_fit_per_record"]) == 4
+    assert set(v["coverage"]) == {"0.5", "0.8", "0.9", "0.95"}
+    assert report["calibration"]["n_records"] == 30
+    meta = json.loads((out / "model" / "metadata.json").read_text())
+    assert meta["training_data"]["family"]["noise"]["color"] == "drift"
+    assert meta["uncertainty"]["scale"] == report["calibration"]["scale"]
+    assert (out / "curves.png").exists()
+    # the model is usable by 'estimate', which reports the uncertainty
+    from kautztwin.nn.family import PlantFamily, family_dataset
+
+    data = family_dataset(PlantFamily.from_toml(tmp_path / "fam.toml"), 2, seed=9)
+    np.savetxt(tmp_path / "rec.csv", np.c_[data.t, data.responses.T], delimiter=",",
+               header="t,a,b", comments="")
+    assert main(["estimate", str(tmp_path / "rec.csv"), "--model", str(out / "model"),
+                 "--response", "a,b", "--json"]) == 0
+    got = json.loads(capsys.readouterr().out)
+    assert got["uncertainty"]["calibrated"] is True
+    assert len(got["uncertainty"]["relative_width"]) == 2
+
+
+@pytest.mark.parametrize(
+    ("text", "match"),
+    [("[plant]\npoles = [-1.0]\n[noise]\ncolour = 'ar1'\n", "unknown key noise.colour"),
+     ("[plant]\npoles = [-1.0]\n[record]\nkind = 'io'\n", "record.kind = 'io'"),
+     ("[noise]\nlevel = 0.1\n", r"\[plant\] is required")],
+    ids=["key", "io", "no-plant"],
+)
+def test_train_family_bad_file_is_a_one_line_usage_error(tmp_path, capsys, text, match):
+    (tmp_path / "fam.toml").write_text(text)
+    code = main(["train", "--family", str(tmp_path / "fam.toml"), "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert len(err.strip().splitlines()) == 1
+    import re
+
+    assert re.search(match, err)
+
+
+def test_train_needs_family_or_config(tmp_path, capsys):
+    assert main(["train", "--out", str(tmp_path / "o")]) == 2
+    assert "one of the arguments --family --config is required" in capsys.readouterr().err

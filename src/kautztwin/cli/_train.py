@@ -13,7 +13,17 @@ from ._common import print_json
 __all__ = ["register", "run_estimate", "run_train"]
 
 TRAIN_DESCRIPTION = """\
-Train a coefficient estimator from a TOML spec: the nominal model and its
+Train an estimator for a plant family (--family FAMILY.toml: the nominal model,
+its tolerances, the noise and the records; everything but the nominal model has
+a default) or from a training spec (--config SPEC.toml).
+
+--family trains the adaptive-pole estimator, calibrates its uncertainty on fresh
+records and validates it against the oracle on other fresh records.  Writes
+OUT/model/ (weights and metadata with the family, the calibration and the
+validation report), OUT/report.json and OUT/curves.png.  See docs/nn.md,
+"Train for your plant family", and examples/family_5th_order.toml.
+
+--config trains a coefficient estimator from a TOML spec: the nominal model and its
 uncertainty, the noise, the time grid, the basis (fixed poles, or 'adaptive' to
 predict the poles too), the preset and the budget.  Writes OUT/model/ (weights
 and metadata with checksums), OUT/curves.png (training and validation loss)
@@ -35,11 +45,13 @@ def register(subparsers: argparse._SubParsersAction, common: argparse.ArgumentPa
         "train",
         parents=[common],
         allow_abbrev=False,
-        help="train a DNN coefficient estimator from a TOML spec",
+        help="train a DNN estimator for a plant family (--family) or from a spec (--config)",
         description=TRAIN_DESCRIPTION,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("--config", required=True, metavar="SPEC.toml", help="the training spec")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--family", metavar="FAMILY.toml", help="a plant family file")
+    src.add_argument("--config", metavar="SPEC.toml", help="a training spec")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
@@ -68,6 +80,8 @@ def register(subparsers: argparse._SubParsersAction, common: argparse.ArgumentPa
 
 def run_train(args: argparse.Namespace) -> int:
     """Run ``kautztwin train``."""
+    if args.family is not None:
+        return _run_family(args)
     from ..experiments import TrainSpec
     from ..experiments.training import train_from_spec
 
@@ -77,6 +91,42 @@ def run_train(args: argparse.Namespace) -> int:
         print_json(summary)
         return 0
     _print_summary(summary, args.out)
+    return 0
+
+
+def _run_family(args: argparse.Namespace) -> int:
+    """``kautztwin train --family``: train, calibrate, validate, write."""
+    from ..nn.family import PlantFamily, train_family, write_family_model
+
+    family = PlantFamily.from_toml(args.family)
+    progress = not args.quiet and sys.stderr.isatty()
+    estimator, report = train_family(family, progress=progress)
+    paths = write_family_model(estimator, report, args.out)
+    if args.json:
+        print_json({**report, **{k: str(v) for k, v in paths.items()}})
+        return 0
+    v = report["validation"]
+    lines = [
+        f"trained the adaptive estimator for {family.system.name!r} "
+        f"({family.system.order} poles, {len(family.system.parameter_names)} parameters) on "
+        f"{family.n_records} records in {report['train_seconds']:.1f} s (simulation included)",
+        f"validation ({v['n_records']} fresh records, fit vs noise-free truth): mean "
+        f"{v['fit']['mean']:.2f} %, p10 {v['fit']['p10']:.2f} %, min {v['fit']['min']:.2f} %",
+    ]
+    if "oracle_fit" in v:
+        lines.append(
+            f"oracle (true structure, least squares from the true parameters): mean "
+            f"{v['oracle_fit']['mean']:.2f} %; estimator - oracle = "
+            f"{v['gap_to_oracle']:+.2f} points"
+        )
+    lines += [
+        f"90 % bands cover {100 * v['coverage']['0.9']:.1f} % of the true samples "
+        f"(calibration scale {report['calibration']['scale']:.3f}); median relative width "
+        f"{v['relative_width']['median']:.3f}",
+        f"estimation time {1e6 * v['seconds_per_record']:.0f} us per record (with uncertainty)",
+        f"wrote {paths['model']}, {paths['report']}, {paths['curves']}",
+    ]
+    sys.stdout.write("\n".join(lines) + "\n")
     return 0
 
 
@@ -103,12 +153,19 @@ def run_estimate(args: argparse.Namespace) -> int:
     cols = read_columns(args.data, [args.time, *names])
     records = np.array([cols[n] for n in names])
     result = estimate_records(estimator, cols[args.time], records)
+    width = None
+    unc: dict[str, Any] = {}
+    if hasattr(estimator, "estimate"):  # the adaptive estimator carries an uncertainty
+        est = estimator.estimate(records, t=cols[args.time])
+        unc = est.summary()
+        width = est.relative_width
     if args.json:
-        print_json({"model": args.model, **result.to_dict()})
+        print_json({"model": args.model, **result.to_dict(),
+                    **({"uncertainty": unc} if unc else {})})
         return 0
-    for name, c, poles, fit in zip(
+    for i, (name, c, poles, fit) in enumerate(zip(
         names, result.coefficients, result.poles, result.fit_percent, strict=True
-    ):
+    )):
         pole_text = ", ".join(
             f"{p.real:.6g}{p.imag:+.6g}j" if p.imag else f"{p.real:.6g}" for p in poles
         )
@@ -116,4 +173,10 @@ def run_estimate(args: argparse.Namespace) -> int:
             f"{name}: fit {fit:.3f} %\n  poles        {pole_text}\n"
             f"  coefficients {', '.join(f'{v:.6g}' for v in c)}\n"
         )
+        if width is not None:
+            state = "calibrated" if unc["calibrated"] else "uncalibrated"
+            sys.stdout.write(
+                f"  uncertainty  relative width of the {100 * unc['level']:g} % band "
+                f"{width[i]:.4f} ({state})\n"
+            )
     return 0

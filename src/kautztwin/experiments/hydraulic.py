@@ -38,8 +38,14 @@ noise), and every step is our own choice where the paper gives none:
    against the measured step response (the approximant's step response,
    :meth:`~kautztwin.KautzModel.step`), against the measured impulse response,
    and, since the data are simulated, against the noise-free responses.
+7. **The paper's update module, adaptive** (:mod:`.hydraulic_dnn`):
+   :class:`~kautztwin.nn.AdaptivePoleEstimator` trained offline on step tests
+   simulated with the nonlinear drive model over the session's temperature
+   range (parameters within a tolerance, the estimated noise), then applied
+   to every measured record, alone and with VARPRO refinement; each record's
+   fit is set beside its VARPRO bound and the paper's 97.31 %.
 
-Methods of step 6:
+Methods of steps 6 and 7:
 
 ``nominal_model``
     The identified joint model itself (no adaptation to the record).
@@ -58,6 +64,9 @@ Methods of step 6:
     Variable projection (:func:`~kautztwin.approx.optimize_poles`) of each step
     record alone, poles free, started at the basis poles: the upper bound of a
     three-function Kautz model.
+``adaptive_dnn`` / ``adaptive_dnn_refined``
+    The adaptive-pole network's poles (least-squares coefficients) for every
+    record, and the same refined by variable projection from those poles.
 
 Size: over 600 lines because it is one study end to end; its stages share the
 study's setup and read top to bottom in the order of the report they write.
@@ -136,6 +145,24 @@ class HydraulicSetup:
         identified model and the estimated noise).
     structure_check : bool, default=True
         Also fit one and two zeros jointly and report their fit and AIC.
+    adaptive : bool, default=True
+        Run the DNN stage (:mod:`kautztwin.experiments.hydraulic_dnn`): the
+        adaptive-pole estimator trained on simulated step tests of the drive
+        and applied to every record, as the paper's update module.
+    adaptive_train : int, default=2000
+        Simulated training records of the adaptive estimator.
+    adaptive_test : int, default=200
+        Fresh simulated records it is scored on.
+    adaptive_epochs : int or None, default=None
+        End-to-end epochs per stage (``None``: the estimator's default, 6).
+    adaptive_hidden : tuple of int, default=(256, 256, 256)
+        Hidden layer widths of its pole network.
+    adaptive_spread : float, default=0.1
+        Relative tolerance of the drive's varied physical parameters in the
+        training records (the simulator is not the stand).
+    adaptive_temperature_margin : float, default=5.0
+        The training records' oil temperatures cover ``temperatures`` widened
+        by this many degC on both sides.
     """
 
     n_records: int = 30
@@ -153,6 +180,13 @@ class HydraulicSetup:
     uncertainty_margin: float = 1.1
     savgol_window: int | None = None
     structure_check: bool = True
+    adaptive: bool = True
+    adaptive_train: int = 2000
+    adaptive_test: int = 200
+    adaptive_epochs: int | None = None
+    adaptive_hidden: tuple[int, ...] = (256, 256, 256)
+    adaptive_spread: float = 0.1
+    adaptive_temperature_margin: float = 5.0
 
     @classmethod
     def quick(cls) -> HydraulicSetup:
@@ -163,11 +197,13 @@ class HydraulicSetup:
         HydraulicSetup
             8 step tests of 300 samples (same 3 s and 20 -> 60 degC), 300
             training records, 40 epochs, no paper-preset networks and no
-            zero-structure check.
+            zero-structure check; the adaptive DNN on 400 records, two hidden
+            layers of 64, 4 epochs per stage.
         """
         return cls(
             n_records=8, n_samples=300, n_train=300, max_epochs=40, paper_preset=False,
-            n_test=100, structure_check=False,
+            n_test=100, structure_check=False, adaptive_train=400, adaptive_test=50,
+            adaptive_epochs=4, adaptive_hidden=(64, 64),
         )
 
 
@@ -432,7 +468,8 @@ def reproduce_hydraulic(
     out_dir : str or Path
         Output folder (created): ``metrics.json``, ``report.md``,
         ``fig9_step_impulse.png``, ``fig10_training.png``,
-        ``fig11_approximations.png`` and ``fit_vs_temperature.png``.
+        ``fig11_approximations.png``, ``fit_vs_temperature.png`` and (with the
+        DNN stage) ``fig12_adaptive_dnn.png``.
     quick : bool, default=False
         Use :meth:`HydraulicSetup.quick` (a smoke run) unless ``setup`` is given.
     setup : HydraulicSetup, optional
@@ -458,7 +495,10 @@ def reproduce_hydraulic(
         joint model, alternatives and per-record models), ``uncertainty``,
         ``impulse``, ``methods`` (per method ``fit_mean``, ``fit_min``,
         ``fit_max``, ``seconds_per_record`` and more), ``per_record``,
-        ``train``, ``setup``, ``sanity``, ``paper_claims`` and ``seconds_total``.
+        ``train``, ``setup``, ``sanity``, ``paper_claims``, ``seconds_total``
+        and, with the DNN stage, ``adaptive`` (``train``; ``per_record`` with
+        ``rows`` of the DNN, refined and VARPRO-bound fits of every record and
+        a ``summary`` with the acceptance against the bound; the poles).
 
     Notes
     -----
@@ -596,6 +636,15 @@ def _run(out: Path, setup: HydraulicSetup, quick: bool, random_state: int, progr
         np.array([r.coefficients @ r.basis.evaluate(t) for r in res]), sec,
         poles=[_cplx(r.basis.poles) for r in res])
 
+    # ------------------------------------------------------------ 7 the adaptive DNN
+    stage = None
+    if setup.adaptive:
+        stage = _adaptive(data, setup, basis, noise, random_state, progress, say)
+        add("adaptive_dnn", stage.step, stage.impulse, stage.seconds_per_record,
+            poles=[_cplx(p) for p in stage.poles])
+        add("adaptive_dnn_refined", stage.step_refined, stage.impulse_refined,
+            stage.seconds_per_record_refined, poles=[_cplx(p) for p in stage.poles_refined])
+
     methods: dict[str, dict[str, Any]] = {}
     per_record: dict[str, Any] = {"temperature": data.temperature.tolist(), "fits": {}}
     final = data.Y_true[:, -1]  # the noise-free unit-step response at t_end (nearly settled)
@@ -661,12 +710,59 @@ def _run(out: Path, setup: HydraulicSetup, quick: bool, random_state: int, progr
         "paper_claims": PAPER_CLAIMS,
         "seconds_total": 0.0,
     }
+    if stage is not None:
+        metrics["adaptive"] = _adaptive_block(stage, per_record, quick)
     _figures(out, data, dnn, approx, basis, per_record)
+    if stage is not None:
+        from .hydraulic_dnn import plot_adaptive
+
+        plot_adaptive(out, data.temperature, stage, metrics["adaptive"]["per_record"],
+                      per_record["varpro_poles"])
     metrics["seconds_total"] = time.perf_counter() - t_start
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
     (out / "report.md").write_text(_report(metrics))
     say(f"wrote {out}/metrics.json, report.md and figures in {metrics['seconds_total']:.0f} s")
     return metrics
+
+
+def _adaptive(data: _Records, setup: HydraulicSetup, basis: Any, noise: float,
+              random_state: int, progress: bool, say: Callable[[str], None]) -> Any:
+    """Stage 7: the adaptive estimator trained on simulated step tests, applied to the records."""
+    from ..simulators.hydraulic import TEMPERATURE_RANGE
+    from .hydraulic_dnn import run_adaptive_stage
+
+    lo, hi = setup.temperatures
+    margin = setup.adaptive_temperature_margin
+    temps = (max(lo - margin, TEMPERATURE_RANGE[0]), min(hi + margin, TEMPERATURE_RANGE[1]))
+    return run_adaptive_stage(
+        data.t, data.Y, amplitude=data.amplitude, temperatures=temps, basis_poles=basis.poles,
+        noise=noise, n_train=setup.adaptive_train, n_test=setup.adaptive_test,
+        epochs=setup.adaptive_epochs, hidden=setup.adaptive_hidden,
+        spread=setup.adaptive_spread, random_state=random_state + 11, progress=progress,
+        say=say,
+    )
+
+
+def _adaptive_block(stage: Any, per_record: dict[str, Any], quick: bool) -> dict[str, Any]:
+    """``metrics['adaptive']``: training figures, per-record table against the VARPRO bound."""
+    from .hydraulic_dnn import per_record_table
+
+    fits = per_record["fits"]
+    table = per_record_table(
+        per_record["temperature"],
+        {"dnn": fits["adaptive_dnn"]["step"], "refined": fits["adaptive_dnn_refined"]["step"],
+         "bound": fits["varpro_per_record"]["step"]},
+        PAPER_CLAIMS["fit_percent"],
+    )
+    return {
+        "train": stage.info,
+        "per_record": table,
+        "poles": [_cplx(p) for p in stage.poles],
+        "poles_refined": [_cplx(p) for p in stage.poles_refined],
+        "seconds_per_record": stage.seconds_per_record,
+        "seconds_per_record_refined": stage.seconds_per_record_refined,
+        "quick": quick,
+    }
 
 
 def _sanity(fits: dict[str, dict[str, list[float]]]) -> dict[str, Any]:
@@ -884,7 +980,7 @@ def _report(m: dict[str, Any]) -> str:
         "|---|---|---|---|---|---|---|---|",
     ]
     order = ["nominal_model", "paper_dnn", "dnn", "projection", "truth_projection",
-             "fixed_basis_ceiling", "varpro_per_record"]
+             "fixed_basis_ceiling", "varpro_per_record", "adaptive_dnn", "adaptive_dnn_refined"]
     for name in order:
         if name not in meth:
             continue
@@ -939,6 +1035,10 @@ def _report(m: dict[str, Any]) -> str:
     lines += ["", "## Beside the paper", ""]
     lines += [textwrap.fill(b, 100, initial_indent="* ", subsequent_indent="  ",
                             break_on_hyphens=False) for b in bullets]
+    if "adaptive" in m:
+        from .hydraulic_dnn import report_lines
+
+        lines += [""] + report_lines(m["adaptive"], meth)[:-1]
     lines += [
         "",
         "Figures: `fig9_step_impulse.png` (step tests and impulse responses),",

@@ -5,6 +5,8 @@ Modules: ``networks`` (the paper's network), ``config`` (training options and lo
 ``coefficient`` (:class:`CoefficientEstimator`: training, files, estimator), ``adaptive``
 (:class:`AdaptivePoleEstimator`: network, training, inference, files, estimator), and what
 both estimators share: ``estimator_base`` (parameters, checks) and ``model_files`` (save/load).
+``uncertainty`` gives every adaptive estimate a calibrated band (:class:`ResponseEstimate`),
+and ``family`` trains an estimator for a plant family (``kautztwin train --family``).
 
 Importing this subpackage imports torch (``import kautztwin`` alone does not).
 Install it with ``pip install 'kautztwin[nn]'``.
@@ -23,10 +25,12 @@ from .adaptive import DEFAULT_ADAPTIVE_CONFIG, AdaptivePoleEstimator, AdaptivePo
 from .coefficient import CoefficientEstimator
 from .config import PRESETS, TrainingConfig, TrainingHistory
 from .data import Standardizer, split_indices
+from .family import PlantFamily, train_family
 from .networks import PaperNetwork, paper_parameter_count
 from .oracle import OracleFit, oracle_fit, simulate_parametric
 from .plots import plot_history
 from .training import fit_network
+from .uncertainty import ResponseEstimate
 
 __all__ = [
     "DEFAULT_ADAPTIVE_CONFIG",
@@ -36,6 +40,8 @@ __all__ = [
     "OracleFit",
     "PRESETS",
     "PaperNetwork",
+    "PlantFamily",
+    "ResponseEstimate",
     "Standardizer",
     "TrainingConfig",
     "TrainingHistory",
@@ -45,4 +51,5 @@ __all__ = [
     "plot_history",
     "simulate_parametric",
     "split_indices",
+    "train_family",
 ]

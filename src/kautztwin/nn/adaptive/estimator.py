@@ -25,12 +25,19 @@ from ...metrics import fit_percent
 from ..config import TrainingConfig, TrainingHistory, fine_tune_config
 from ..estimator_base import EstimatorMixin, check_dataset, check_fine_tune_data, grid_difference
 from ..kautz_torch import block_poles
+from ..uncertainty import (
+    DEFAULT_LEVEL,
+    ResponseEstimate,
+    calibrate_estimate,
+    laplace_response_covariance,
+)
 from .files import load_estimator, save_estimator
 from .inference import (
     check_records,
     least_squares_fit,
     predict_params,
     refine_params,
+    response_jacobian,
     weights_tensor,
 )
 from .network import AdaptivePoleNetwork
@@ -133,6 +140,13 @@ class AdaptivePoleEstimator(EstimatorMixin):
         Samples per record and basis functions.
     n_train_ : int
         Records the network was trained on (training part of the split).
+    uncertainty_scale_ : float
+        Calibration scale of the uncertainty (:meth:`calibrate`); 1.0 until calibrated.
+    calibration_ : dict or None
+        What :meth:`calibrate` measured (level, scale, records, coverage), ``None`` before.
+    training_data_ : dict or None
+        Description of the training distribution when the trainer recorded one (the
+        plant family of ``kautztwin train --family``), else ``None``.
 
     See Also
     --------
@@ -459,6 +473,9 @@ class AdaptivePoleEstimator(EstimatorMixin):
         self.n_samples_ = int(t.size)
         self.n_functions_ = int(module.n_functions)
         self.n_train_ = int(n_train)
+        self.uncertainty_scale_ = 1.0
+        self.calibration_: dict[str, Any] | None = None
+        self.training_data_: dict[str, Any] | None = None
 
     def _check_is_fitted(self) -> None:
         if not hasattr(self, "network_"):
@@ -620,6 +637,112 @@ class AdaptivePoleEstimator(EstimatorMixin):
         w = weights_tensor(self.t_, self.weights, dtype)
         out = least_squares_fit(self.network_, X, params, w, dtype, responses=True)
         return out[0] if single else out
+
+    def _uncertainty(
+        self, responses: Any, t: ArrayLike | None, refine: bool | None, level: float, scale: float
+    ) -> ResponseEstimate:
+        X, params, _ = self._estimate_params(responses, t, refine)
+        w = weights_tensor(self.t_, self.weights, torch.float64)
+        coef = least_squares_fit(self.network_, X, params, w, torch.float64)
+        fitted, jac = response_jacobian(self.network_, params, coef)
+        std, cov, noise_std, rho = laplace_response_covariance(jac, X - fitted)
+        return ResponseEstimate(
+            t=self.t_, kind=self.kind_, kinds=self.kinds_, params=params, coefficients=coef,
+            response=fitted, std=scale * std, covariance=scale * scale * cov,
+            noise_std=noise_std, noise_correlation=rho, scale=float(scale),
+            calibrated=self.calibration_ is not None, level=float(level),
+        )
+
+    def estimate(
+        self,
+        responses: ArrayLike | ResponseDataset,
+        *,
+        t: ArrayLike | None = None,
+        refine: bool | None = None,
+        level: float = DEFAULT_LEVEL,
+    ) -> ResponseEstimate:
+        """Estimate every record's model with a calibrated uncertainty.
+
+        The estimate is that of :meth:`predict_models`; its uncertainty is the
+        linearised least-squares (Laplace) covariance of the fit with an AR(1)
+        noise model read from the record's residual, times the calibration scale
+        ``uncertainty_scale_`` (see :mod:`kautztwin.nn.uncertainty` for the method
+        and why).  Until :meth:`calibrate` has run, the scale is 1 and
+        ``result.calibrated`` is ``False``: the bands then have the right shape
+        but not a guaranteed level.
+
+        Parameters
+        ----------
+        responses : array-like of shape (n_samples,) or (n_records, n_samples), or ResponseDataset
+            Records on the training grid ``t_``.
+        t : array-like of shape (n_samples,), optional
+            Sample times, checked with :meth:`check_grid`.
+        refine : bool, optional
+            Override the ``refine`` option (with ``True`` the covariance is the
+            Laplace approximation at the VARPRO optimum).
+        level : float, default=0.9
+            Level of the bands and of ``relative_width``.
+
+        Returns
+        -------
+        ResponseEstimate
+            Always with a record axis (one row for a 1-D record); ``relative_width``
+            is the one number per record a digital twin compares with a threshold
+            to accept or defer an update, and ``impulse_band``, ``step_band``,
+            ``frequency_band`` give the bands.
+
+        Raises
+        ------
+        DataError
+            As :meth:`predict`, or a ``level`` outside ``(0, 1)``.
+        NotFittedError
+            If the estimator is not fitted.
+        """
+        return self._uncertainty(responses, t, refine, level, self.uncertainty_scale_)
+
+    def calibrate(
+        self,
+        dataset: ResponseDataset,
+        *,
+        level: float = DEFAULT_LEVEL,
+        refine: bool | None = None,
+    ) -> AdaptivePoleEstimator:
+        """Fit the calibration scale of the uncertainty on fresh records with known truth.
+
+        Sets ``uncertainty_scale_`` to the split-conformal scale that makes the
+        ``level`` bands of :meth:`estimate` contain a share ``level`` of the
+        noise-free samples of ``dataset`` (:func:`~kautztwin.nn.uncertainty.calibration_scale`),
+        and ``calibration_`` to what was measured.  Use records the network was
+        not trained on, drawn like the ones it will see.
+
+        Parameters
+        ----------
+        dataset : ResponseDataset
+            Fresh noisy records with their noise-free responses ``dataset.clean``.
+        level : float, default=0.9
+        refine : bool, optional
+            Override the ``refine`` option (calibrate the way you will estimate).
+
+        Returns
+        -------
+        AdaptivePoleEstimator
+            ``self``, calibrated.
+
+        Raises
+        ------
+        DataError
+            If ``dataset`` is not a data set on this grid, or the bands cannot be calibrated.
+        NotFittedError
+            If the estimator is not fitted.
+        """
+        check_dataset(dataset)
+        raw = self._uncertainty(dataset, None, refine, level, 1.0)
+        kappa, report = calibrate_estimate(
+            raw, dataset.clean, refine=bool(self.refine if refine is None else refine)
+        )
+        self.uncertainty_scale_ = kappa
+        self.calibration_ = report
+        return self
 
     def score(self, dataset: ResponseDataset, *, refine: bool | None = None) -> float:
         """Mean fit percent of the fitted responses against the noise-free ones.

@@ -1,7 +1,8 @@
 """Files of the adaptive-pole estimator: ``weights.pt`` and ``metadata.json`` (save and load).
 
 The folder layout and its checks are :mod:`kautztwin.nn.model_files`; this module adds
-what the adaptive-pole estimator stores (structure, architecture, options, loss curves)
+what the adaptive-pole estimator stores (structure, architecture, options, loss curves;
+optionally the calibration of its uncertainty and a description of its training data)
 and rebuilds it from that.
 """
 
@@ -66,6 +67,14 @@ def save_estimator(est: Any, directory: str | Path) -> Path:
         "histories": [h.to_dict() for h in est.histories_],
         "pretrain_histories": [h.to_dict() for h in est.pretrain_histories_],
     }
+    # optional fields (files written before them load with the defaults)
+    if getattr(est, "calibration_", None) is not None:
+        fields["uncertainty"] = {
+            "scale": float(est.uncertainty_scale_),
+            "calibration": est.calibration_,
+        }
+    if getattr(est, "training_data_", None) is not None:
+        fields["training_data"] = est.training_data_
     return save_verified(directory, _FORMAT, _FORMAT_VERSION, state, est.t_, fields)
 
 
@@ -144,4 +153,12 @@ def _from_files(cls: type, meta: dict[str, Any], weights_path: Path) -> Any:
         TrainingConfig.from_dict(meta["config"]),
         int(meta["n_train"]),
     )
+    unc = meta.get("uncertainty")
+    if unc is not None:
+        try:
+            est.uncertainty_scale_ = float(unc["scale"])
+            est.calibration_ = dict(unc["calibration"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise DataError(f"malformed 'uncertainty' entry in the metadata: {exc}") from None
+    est.training_data_ = meta.get("training_data")
     return est

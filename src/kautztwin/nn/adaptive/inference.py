@@ -1,5 +1,7 @@
 """Inference of the adaptive-pole estimator: network poles, VarPro refinement, least squares.
 
+Also the Jacobian of the fitted responses that their uncertainty needs.
+
 Functions of a trained :class:`~kautztwin.nn.AdaptivePoleNetwork` and checked records
 (float64 arrays of shape ``(n_records, n_samples)``), batched by
 :data:`~kautztwin.nn.adaptive.network.RECORD_BATCH` records without gradients.
@@ -26,6 +28,7 @@ __all__ = [
     "least_squares_fit",
     "predict_params",
     "refine_params",
+    "response_jacobian",
     "weights_tensor",
 ]
 
@@ -173,3 +176,45 @@ def least_squares_fit(
             fit = (c[:, None, :] @ K)[:, 0] if responses else c
             out[s : s + P.shape[0]] = fit.double().numpy()
     return out
+
+
+def response_jacobian(
+    module: AdaptivePoleNetwork, params: NDArray, coef: NDArray
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Fitted responses and their Jacobian in ``(params, coefficients)`` (float64, batched).
+
+    The coefficient columns are the basis signals themselves; the parameter columns are
+    central differences of ``coef @ design(params)`` with a relative step of 1e-5.
+
+    Parameters
+    ----------
+    module : AdaptivePoleNetwork
+        Supplies the basis signals (:meth:`~AdaptivePoleNetwork.design`).
+    params : ndarray of shape (n_records, n_params)
+    coef : ndarray of shape (n_records, n_functions)
+
+    Returns
+    -------
+    fitted : ndarray of shape (n_records, n_samples)
+    jac : ndarray of shape (n_records, n_samples, n_params + n_functions)
+    """
+    n_rec, n_par = params.shape
+    n_samples = int(module._t.size)
+    fitted = np.empty((n_rec, n_samples))
+    jac = np.empty((n_rec, n_samples, n_par + coef.shape[1]))
+    with torch.no_grad():
+        for s in range(0, n_rec, RECORD_BATCH):
+            P = torch.as_tensor(params[s : s + RECORD_BATCH], dtype=torch.float64)
+            c = torch.as_tensor(coef[s : s + RECORD_BATCH], dtype=torch.float64)
+            K = module.design(P)
+            b = slice(s, s + P.shape[0])
+            fitted[b] = (c[:, None, :] @ K)[:, 0].numpy()
+            jac[b, :, n_par:] = K.transpose(1, 2).numpy()
+            for j in range(n_par):
+                h = 1e-5 * torch.clamp(P[:, j].abs(), min=1e-3)
+                up, down = P.clone(), P.clone()
+                up[:, j] += h
+                down[:, j] -= h
+                diff = (c[:, None, :] @ (module.design(up) - module.design(down)))[:, 0]
+                jac[b, :, j] = (diff / (2 * h[:, None])).numpy()
+    return fitted, jac

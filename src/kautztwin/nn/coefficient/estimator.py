@@ -26,6 +26,12 @@ from ..estimator_base import (
     grid_difference,
 )
 from ..networks import PaperNetwork
+from ..uncertainty import (
+    DEFAULT_LEVEL,
+    ResponseEstimate,
+    calibrate_estimate,
+    fixed_basis_estimate,
+)
 from .files import load_estimator, save_estimator
 from .training import train_coefficient_networks
 
@@ -94,6 +100,10 @@ class CoefficientEstimator(EstimatorMixin):
         Samples per record, ``t_.size``.
     n_functions_ : int
         Number of coefficients ``N``.
+    uncertainty_scale_ : float
+        Calibration scale of :meth:`estimate`'s bands; 1.0 until :meth:`calibrate`.
+    calibration_ : dict or None
+        What :meth:`calibrate` measured, ``None`` before.
 
     See Also
     --------
@@ -381,6 +391,8 @@ class CoefficientEstimator(EstimatorMixin):
         self.label_scaler_ = label_scaler
         self.n_samples_ = int(t_.size)
         self.n_functions_ = int(basis.n_functions)
+        self.uncertainty_scale_ = 1.0
+        self.calibration_: dict[str, Any] | None = None
 
     def _check_is_fitted(self) -> None:
         if not hasattr(self, "networks_"):
@@ -489,6 +501,65 @@ class CoefficientEstimator(EstimatorMixin):
         """
         coef = np.atleast_2d(self.predict(responses, t=t))
         return [KautzModel(self.basis_, c) for c in coef]
+
+    def estimate(
+        self,
+        responses: ArrayLike | ResponseDataset,
+        *,
+        t: ArrayLike | None = None,
+        level: float = DEFAULT_LEVEL,
+    ) -> ResponseEstimate:
+        """Estimate every record's model with its uncertainty (:mod:`kautztwin.nn.uncertainty`).
+
+        The estimate is :meth:`predict_models`' (the networks' coefficients on
+        ``basis_``); its uncertainty is the least-squares covariance of the
+        coefficients on the fixed basis with an AR(1) noise model read from the
+        residual, times ``uncertainty_scale_`` (1 until :meth:`calibrate`).  The
+        poles are fixed, so their block of the covariance is zero.
+
+        Parameters
+        ----------
+        responses : array-like of shape (n_samples,) or (n_records, n_samples), or ResponseDataset
+            Records on the training grid ``t_``.
+        t : array-like of shape (n_samples,), optional
+            Sample times, checked with :meth:`check_grid`.
+        level : float, default=0.9
+            Level of the bands and of ``relative_width``.
+
+        Returns
+        -------
+        ResponseEstimate
+            With a record axis; ``relative_width`` is one number per record.
+        """
+        X, _ = checked_records(self, responses, t)
+        return fixed_basis_estimate(
+            self.basis_, self.t_, self.kind_, X, self.predict(X),
+            scale=self.uncertainty_scale_, calibrated=self.calibration_ is not None,
+            level=level,
+        )
+
+    def calibrate(
+        self, dataset: ResponseDataset, *, level: float = DEFAULT_LEVEL
+    ) -> CoefficientEstimator:
+        """Fit the calibration scale of :meth:`estimate`'s bands on fresh records.
+
+        Parameters
+        ----------
+        dataset : ResponseDataset
+            Fresh noisy records with their noise-free responses ``dataset.clean``.
+        level : float, default=0.9
+
+        Returns
+        -------
+        CoefficientEstimator
+            ``self``, with ``uncertainty_scale_`` and ``calibration_`` set.
+        """
+        check_dataset(dataset)
+        X, _ = checked_records(self, dataset, None)
+        raw = fixed_basis_estimate(self.basis_, self.t_, self.kind_, X, self.predict(X),
+                                   level=level)
+        self.uncertainty_scale_, self.calibration_ = calibrate_estimate(raw, dataset.clean)
+        return self
 
     # ------------------------------------------------------------------ files
     def _state(self) -> dict[str, torch.Tensor]:

@@ -60,7 +60,11 @@ def save_estimator(est: Any, directory: str | Path) -> Path:
         "config": est.config_.to_dict(),
         "histories": [h.to_dict() for h in est.histories_],
     }
-    return save_verified(directory, _FORMAT, _FORMAT_VERSION, est._state(), est.t_, fields)
+    if getattr(est, "calibration_", None) is not None:  # optional: older files lack it
+        fields["uncertainty"] = {
+            "scale": float(est.uncertainty_scale_),
+            "calibration": est.calibration_,
+        }
     return save_verified(directory, _FORMAT, _FORMAT_VERSION, est._state(), est.t_, fields)
 
 
@@ -135,4 +139,11 @@ def _from_files(cls: type, meta: dict[str, Any], weights_path: Path) -> Any:
         input_scaler=input_scaler,
         label_scaler=label_scaler,
     )
+    unc = meta.get("uncertainty")
+    if unc is not None:
+        try:
+            est.uncertainty_scale_ = float(unc["scale"])
+            est.calibration_ = dict(unc["calibration"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise DataError(f"malformed 'uncertainty' entry in the metadata: {exc}") from None
     return est
