@@ -10,10 +10,13 @@ reads must be shipped or written by an earlier example of the same block.
 
 Sizes are made small where the example allows it (the command has a ``--quick`` variant or a
 size flag): ``reproduce`` runs ``--quick`` (marked ``slow``), ``twin run`` runs ``--quick``
-without ``--duration`` and with ``--speedup`` at 1000, ``--grid`` is cut to 30.  Not run:
+without ``--duration`` and with ``--speedup`` at 1000, ``fleet run`` with at most 3 assets for
+12 s, ``--grid`` is cut to 30; ``identify --model auto`` (minutes of training) is ``slow``.
+Not run:
 synopsis lines (``[--flag]``, ``(--a | --b)``, ``...``), long-lived services (``plant serve``,
 ``twin serve``, anything ending in ``&``; tests/test_twin_serve.py and tests/test_opcua.py run
-them), and lines that are not ``kautztwin`` commands.
+them), commands for a Ray cluster (``--ray-address``), and lines that are not ``kautztwin``
+commands.
 
 On the code before the fix (``d678f0a``) README's ``kautztwin approx data.csv`` and
 ``kautztwin train --config spec.toml``, docs/cli.md's ``sensitivity run1.csv`` and
@@ -136,6 +139,8 @@ def skip_reason(argv: list[str]) -> str | None:
         return "synopsis"
     if argv[-1:] == ["&"] or "serve" in argv[1:3]:
         return "long-lived service"
+    if "--ray-address" in argv:
+        return "needs a running Ray cluster (tests/test_fleet.py starts a local one, slow)"
     return None
 
 
@@ -154,6 +159,13 @@ def shrink(argv: list[str]) -> list[str]:
         small = ("--no-plots", "--no-progress") if timed else ("--quick", "--no-plots",
                                                                 "--no-progress")
         argv += [a for a in small if a not in argv]
+    if argv[1:3] == ["fleet", "run"]:  # 3 assets for 12 s: identification and closed loop
+        for flag, small in (("--assets", 3), ("--duration", 12)):
+            if flag in argv:
+                i = argv.index(flag) + 1
+                argv[i] = str(min(float(argv[i]), small)).removesuffix(".0")
+            else:
+                argv += [flag, str(small)]
     if "--grid" in argv:
         i = argv.index("--grid") + 1
         argv[i] = str(min(int(argv[i]), 30))
@@ -201,7 +213,10 @@ def cases() -> list:
     for where, cmds in BLOCKS:
         if not _runs_something(cmds):
             continue
-        slow = [c for c in cmds if re.search(r"^\S*kautztwin reproduce\b", c)]
+        # reproduce (minutes even with --quick) and identify --model auto (3 structures x 2
+        # pole counts x 6 folds of torch training: minutes by design, as the docs say)
+        slow = [c for c in cmds if re.search(r"^\S*kautztwin reproduce\b", c)
+                or re.search(r"^\S*kautztwin identify\b.*--model auto\b", c)]
         rest = [c for c in cmds if c not in slow]
         if rest:
             out.append(pytest.param(where, rest, id=where))
