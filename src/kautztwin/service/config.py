@@ -85,6 +85,8 @@ SCHEMA: dict[str, dict[str, tuple[Any, Any, str]]] = {
     },
     "estimator": {
         "path": (str, None, "folder of a trained DNN estimator (kautztwin train)"),
+        "max_relative_width": (float, None, "defer a DNN update whose 90-percent band is wider "
+                               "than this share of the response (default: never defer)"),
     },
     "mpc": {
         "horizon": (int, None, "prediction horizon, samples"),
@@ -324,6 +326,10 @@ class ServiceConfig:
             if not path.is_dir():
                 raise DataError(f"estimator.path {est!r}: no such estimator folder ({path})")
             self.values["estimator"]["path"] = str(path)
+        width = self.values["estimator"]["max_relative_width"]
+        if width is not None and not (math.isfinite(width) and width > 0):
+            raise DataError(f"estimator.max_relative_width must be a positive number, got "
+                            f"{width:g}")
         for key in ("duration", "ident_duration", "min_rate", "recovery_window"):
             v = self.model[key]
             if v is not None and not v > 0 and key != "recovery_window":

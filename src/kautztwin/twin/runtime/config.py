@@ -155,7 +155,9 @@ class TwinConfig:
         :class:`~kautztwin.twin.SyncMonitor` settings (the rolling fit).
     updater : mapping
         Further keyword arguments of :class:`~kautztwin.twin.Updater`
-        (``'background'`` among them: see :class:`~kautztwin.twin.runtime.DigitalTwin`).
+        (``'background'`` among them: see :class:`~kautztwin.twin.runtime.DigitalTwin`;
+        ``'max_relative_width'`` defers a DNN update whose confidence band is wider
+        than that share of the response).
     sanitizer_threshold, sanitizer_window, sensor_scale : float, int, float
         :class:`~kautztwin.twin.SampleSanitizer` settings (``sensor_scale`` is
         its ``min_scale``).

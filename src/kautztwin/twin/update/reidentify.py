@@ -79,6 +79,14 @@ class ModelUpdate:
         Sample index at which the attempt's data window ended; ``k`` for a
         synchronous attempt, earlier for a background one (which is judged
         at ``k``, when its result was ready).  ``None`` means ``k``.
+    relative_width : float, default=nan
+        Uncertainty of a DNN candidate: the RMS half-width of its confidence
+        band over the RMS of its response
+        (:attr:`~kautztwin.nn.ResponseEstimate.relative_width`, the level in
+        ``confidence``); NaN when the candidate came without one (an
+        estimator without ``estimate``, pole optimisation, re-identification).
+    confidence : float, default=nan
+        Level of the band of ``relative_width`` (0.9 for the estimators' default).
     """
 
     kind: str
@@ -92,6 +100,8 @@ class ModelUpdate:
     digital_model: DigitalModel | None
     elapsed: float
     k_submitted: int | None = None
+    relative_width: float = math.nan
+    confidence: float = math.nan
 
     def __post_init__(self) -> None:
         if self.k_submitted is None:
@@ -111,6 +121,8 @@ class ModelUpdate:
             "fit_current": _json_float(self.fit_current), "elapsed": self.elapsed,
             "version": None if self.digital_model is None else self.digital_model.version,
             "model": None if self.candidate is None else self.candidate.to_dict(),
+            "relative_width": _json_float(self.relative_width),
+            "confidence": _json_float(self.confidence),
         }
 
 
@@ -204,7 +216,11 @@ class Updater:
     estimator (any object with ``predict_models(responses, t=...)`` returning
     :class:`~kautztwin.KautzModel` objects, e.g. ``kautztwin.nn``'s) or, without
     one, :func:`kautztwin.optimize_poles` turns a recent step test into a
-    candidate, validated the same way.
+    candidate, validated the same way.  An estimator that also has
+    ``estimate(responses, t=...)`` (``kautztwin.nn``'s, returning a
+    :class:`~kautztwin.nn.ResponseEstimate`) gives the candidate with its
+    uncertainty; with ``max_relative_width`` set, a candidate whose band is
+    wider than that is deferred (rejected without validation, the model kept).
 
     The class is over 400 lines because it documents the recovery policy and
     every parameter (about 400 of its lines are docstrings); the background
@@ -284,6 +300,18 @@ class Updater:
         window still straddles an abrupt change (54 % and more in
         ``tests/test_twin_update.py``), which a floor near the monitor's
         threshold would refuse.
+    max_relative_width : float or None, default=None
+        Defer a DNN update whose estimate is this uncertain: when the
+        estimator's ``estimate`` gives a band (90 % by default) whose RMS
+        half-width exceeds this share of the RMS step response
+        (:attr:`~kautztwin.nn.ResponseEstimate.relative_width`; 0.1: the
+        band is about +-10 % of the response), :meth:`update_from_step_test`
+        returns a rejected :class:`ModelUpdate` whose reason starts with
+        ``'deferred:'`` and keeps the current model; a width that is not
+        finite (a zero response) is deferred too.  ``None`` (the default)
+        decides on the validation fits alone.  The width is recorded in
+        every DNN update's :class:`ModelUpdate` (and its logged payload)
+        either way.  Needs an estimator with ``estimate``.
     background : bool, default=False
         Run the accurate path's fit in a single worker thread, off the
         sampling path: :meth:`step` submits an attempt with a frozen copy of
@@ -440,6 +468,7 @@ class Updater:
         validation_fraction: float = 0.3,
         min_improvement: float = 0.0,
         min_candidate_fit: float | None = 50.0,
+        max_relative_width: float | None = None,
         min_rate: float | None = None,
         max_iter: int = 30,
         background: bool = False,
@@ -515,6 +544,15 @@ class Updater:
                     f"{min_candidate_fit!r}"
                 )
             self.min_candidate_fit = floor
+        if max_relative_width is None:
+            self.max_relative_width: float | None = None
+        else:
+            self.max_relative_width = check_positive(max_relative_width, "max_relative_width")
+            if estimator is not None and not callable(getattr(estimator, "estimate", None)):
+                raise DataError(
+                    "max_relative_width needs an estimator with an estimate(responses, t=...) "
+                    f"method (its uncertainty); {type(estimator).__name__} has none"
+                )
         self.min_rate = None if min_rate is None else _finite_or_nan(min_rate)
         self.max_iter = check_int(max_iter, "max_iter", 1)
         if not isinstance(background, bool | np.bool_):
@@ -940,6 +978,7 @@ class Updater:
     def _judge(
         self, kind: str, start: float, model: KautzModel, offset: float, u: NDArray,
         y: NDArray, n_val: int, *, u_now: NDArray | None = None, k_submitted: int | None = None,
+        band: tuple[float, float] = (math.nan, math.nan),
     ) -> ModelUpdate:
         """Validate a candidate on the last ``n_val`` samples of ``u, y`` and maybe adopt it.
 
@@ -957,7 +996,7 @@ class Updater:
                 kind, start, False,
                 f"candidate fit {fit_c:.2f} % does not beat the current {fit_m:.2f} % "
                 f"on {n_val} held-out samples",
-                model, offset, fit_c, fit_m, None, k_submitted=k_submitted,
+                model, offset, fit_c, fit_m, None, k_submitted=k_submitted, band=band,
             )
         floor = self.min_candidate_fit
         if floor is not None and not fit_c >= floor:
@@ -965,7 +1004,7 @@ class Updater:
                 kind, start, False,
                 f"candidate fit {fit_c:.2f} % on {n_val} held-out samples is below "
                 f"min_candidate_fit = {floor:g} % (the current model has {fit_m:.2f} %)",
-                model, offset, fit_c, fit_m, None, k_submitted=k_submitted,
+                model, offset, fit_c, fit_m, None, k_submitted=k_submitted, band=band,
             )
         dm = self.digital_model.with_update(model, kind, fit_c)
         self.digital_model = dm
@@ -989,23 +1028,38 @@ class Updater:
             kind, start, True,
             f"candidate fit {fit_c:.2f} % beats the current {fit_m:.2f} % on {n_val} held-out "
             "samples",
-            model, offset, fit_c, fit_m, dm, k_submitted=k_submitted,
+            model, offset, fit_c, fit_m, dm, k_submitted=k_submitted, band=band,
         )
 
     def _finish(
         self, kind: str, start: float, accepted: bool, reason: str, model: KautzModel | None,
         offset: float, fit_c: float, fit_m: float, dm: DigitalModel | None,
-        *, k_submitted: int | None = None,
+        *, k_submitted: int | None = None, band: tuple[float, float] = (math.nan, math.nan),
     ) -> ModelUpdate:
         mu = ModelUpdate(
             kind, self._k, accepted, reason, model, offset, fit_c, fit_m, dm,
-            time.perf_counter() - start, k_submitted,
+            time.perf_counter() - start, k_submitted, *band,
         )
         self.model_updates.append(mu)
         self._log(
             "model-update" if accepted else "model-rejected", reason, self._k, None, mu.payload()
         )
         return mu
+
+    def _dnn_candidate(
+        self, record: NDArray, t: NDArray | None
+    ) -> tuple[KautzModel, tuple[float, float]]:
+        """The DNN's model of a step record and ``(relative_width, level)`` of its band.
+
+        The estimator's ``estimate`` when it has one (the same model as
+        ``predict_models``, with the uncertainty), else ``predict_models``
+        and no width (NaN).
+        """
+        estimate = getattr(self.dnn, "estimate", None)
+        if not callable(estimate):
+            return self.dnn.predict_models(record, t=t)[0], (math.nan, math.nan)
+        result = estimate(record, t=t)
+        return result.model(0), (float(result.relative_width[0]), float(result.level))
 
     def update_from_step_test(
         self,
@@ -1036,7 +1090,10 @@ class Updater:
         Returns
         -------
         ModelUpdate
-            ``kind='dnn-update'`` with an estimator, else ``'step-test'``.
+            ``kind='dnn-update'`` with an estimator, else ``'step-test'``;
+            a DNN candidate carries the ``relative_width`` of its band and
+            is deferred (rejected, reason ``'deferred: ...'``, fits NaN)
+            when that exceeds ``max_relative_width``.
             The candidate is validated on the last ``reid_samples`` buffered
             samples (their final ``validation_fraction``) when the buffer holds
             enough, else on the step test itself (on the twin's grid only; an
@@ -1060,9 +1117,10 @@ class Updater:
         base_y = float(yy[0]) if y0 is None else check_number(y0, "y0")
         record = (yy - base_y) / amp
         tt = None if t is None else np.asarray(t, dtype=float)
+        band = (math.nan, math.nan)
         if self.dnn is not None:
             kind = "dnn-update"
-            model = self.dnn.predict_models(record, t=tt)[0]
+            model, band = self._dnn_candidate(record, tt)
         else:
             kind = "step-test"
             grid = np.arange(yy.size) * self.dt if tt is None else tt
@@ -1070,24 +1128,37 @@ class Updater:
             model = optimize_poles(grid, record, init, kind="step").model
         md = discretize_model(model, self.dt)
         offset = base_y - md.dc_gain * (base_u - self.input_offset)
+        width, level = band
+        limit = self.max_relative_width
+        if kind == "dnn-update" and limit is not None and not width <= limit:
+            why = (
+                f"the {100 * level:g} % band is {width:.3g} of the response (RMS half-width "
+                f"over RMS), above max_relative_width = {limit:g}" if not math.isnan(level)
+                else f"the estimator gives no uncertainty (no estimate method) and "
+                f"max_relative_width = {limit:g} is set"
+            )
+            return self._finish(kind, start, False, f"deferred: {why}", md, offset,
+                                math.nan, math.nan, None, band=band)
         u_all, y_all = self._buffer()
         n_w = min(self.reid_samples, u_all.size)
         n_val = int(self.validation_fraction * n_w)
         if n_val >= 10 and np.isfinite(y_all[-n_val:]).sum() >= 10:
             h0 = max(0, u_all.size - n_w - self.burn_in)
-            return self._judge(kind, start, md, offset, u_all[h0:], y_all[h0:], n_val)
+            return self._judge(kind, start, md, offset, u_all[h0:], y_all[h0:], n_val,
+                               band=band)
         if tt is not None and (
             tt.size != yy.size or not np.allclose(np.diff(tt), self.dt, rtol=1e-6, atol=0)
         ):
             return self._finish(
                 kind, start, False, "no buffered data to validate on, and the step test is "
                 "not on the twin's sampling grid", md, offset, math.nan, math.nan, None,
+                band=band,
             )
         # validate on the step test itself: the twin at rest at u0, the step at the first sample
         n_pre = max(self.burn_in, 1)
         u_rec = np.concatenate([np.full(n_pre, base_u), np.full(yy.size, base_u + amp)])
         y_rec = np.concatenate([np.full(n_pre, base_y), yy])
-        return self._judge(kind, start, md, offset, u_rec, y_rec, yy.size)
+        return self._judge(kind, start, md, offset, u_rec, y_rec, yy.size, band=band)
 
     def snapshot(self, provenance: str = "rls-update") -> DigitalModel:
         """Publish the fast path's live coefficients as a new model version.
