@@ -134,3 +134,87 @@ def test_live_loop_keeps_the_rate_limit_at_the_plant():
     assert abs(np.mean(y_end) - 103.0) < 3.0, np.mean(y_end)
     # the stored inputs are the applied ones (the sample pairs the plant saw)
     np.testing.assert_array_equal(run.arrays["u"][: len(plant.applied)], plant.applied)
+
+
+class _Backlog(_LateInputs):
+    """A live plant whose link reports a backlog after the identification (``meta['queued']``).
+
+    The readings after sample ``start`` say ``backlog`` newer samples wait, one fewer each
+    sample: as after an identification that stalled the loop while the plant went on.
+    """
+
+    def __init__(self, plant, start: int, backlog: int) -> None:
+        super().__init__(plant)
+        self.start, self.backlog = start, backlog
+
+    def step(self, u):
+        r = super().step(u)
+        queued = max(0, self.backlog - (self.k - self.start)) if self.k > self.start else 0
+        return kt.twin.Reading(r.t, r.y, {**r.meta, "input_delay": 1 + queued,
+                                          "queued": queued})
+
+
+def test_live_loop_starts_the_closed_loop_once_it_has_caught_up():
+    """The samples queued during the identification are taken holding its last input."""
+    from kautztwin.twin import HydraulicPlant
+    from kautztwin.twin.runtime import DigitalTwin, TwinConfig
+    from kautztwin.twin.runtime.loop import MAX_QUEUED
+
+    cfg = TwinConfig.for_plant("hydraulic", duration=12.0, quick=True, static_twin=False)
+    n_id, backlog = cfg.n_ident, 60
+
+    def run(plant):
+        twin = DigitalTwin(plant, cfg, background=False)
+        return twin.run(progress=False)
+
+    plant = _Backlog(HydraulicPlant(dt=0.02, temperature=20.0, noise=0.01, random_state=1),
+                     n_id, backlog)
+    live = run(plant)
+    # the reading of n_id predates the stall; the first one with <= MAX_QUEUED waiting:
+    k_cl = n_id + backlog - MAX_QUEUED
+    assert live.k_closed_loop == k_cl
+    a = live.arrays
+    assert np.all(np.isnan(a["mpc_ms"][n_id:k_cl])) and np.all(a["dither"][n_id:k_cl] == 0)
+    assert np.isfinite(a["mpc_ms"][k_cl])  # the first decision
+    # the identification's last input held (once the inputs on the wire, <= 7 samples, land)
+    applied = np.asarray(plant.applied)
+    assert np.all(applied[n_id + 8:k_cl] == applied[n_id + 8]) and k_cl > n_id + 40
+    assert np.ptp(applied[k_cl:k_cl + 100]) > 0  # then the controller moves it
+    assert np.all(np.isfinite(live.arrays["y_pred"][n_id:k_cl]))  # the twin took them
+    starts = [e.payload["k_closed_loop"] for e in live.events
+              if e.kind == "phase" and "k_closed_loop" in e.payload]
+    assert starts == [k_cl]
+    # no backlog: the closed loop starts right after the identification's sample
+    plain = run(_LateInputs(HydraulicPlant(dt=0.02, temperature=20.0, noise=0.01,
+                                           random_state=1)))
+    assert plain.k_closed_loop == n_id + 1
+    # a simulated plant (the offline run): at once
+    sim = run(HydraulicPlant(dt=0.02, temperature=20.0, noise=0.01, random_state=1))
+    assert sim.k_closed_loop == n_id
+
+
+def test_resumed_live_run_replays_the_closed_loop_start(tmp_path):
+    """A resumed live run starts its closed loop at the stored sample, not at n_ident."""
+    from kautztwin.twin import HydraulicPlant
+    from kautztwin.twin.runtime import DigitalTwin, TwinConfig
+
+    cfg = TwinConfig.for_plant("hydraulic", duration=12.0, quick=True, static_twin=False)
+    n_id, backlog = cfg.n_ident, 60
+
+    def plant():
+        return _Backlog(HydraulicPlant(dt=0.02, temperature=20.0, noise=0.01, random_state=1),
+                        n_id, backlog)
+
+    store = tmp_path / "h.sqlite"
+    twin = DigitalTwin(plant(), cfg, history=store, background=False)
+    twin.start()
+    while twin.k < n_id + backlog + 50:
+        twin.step()
+    k_cl = twin.result().k_closed_loop
+    twin.finish()
+    twin.close()
+    assert k_cl > n_id + 40
+    again = DigitalTwin(plant(), cfg, history=store, background=False)  # no backlog now
+    run = again.run(progress=False)
+    again.close()
+    assert run.resume["resumed"] and run.k_closed_loop == k_cl

@@ -157,9 +157,11 @@ class _StderrLines:
         raise AssertionError(f"no {event!r} log event in {timeout} s")
 
 
-def _windows_after_recovery(store: Path, offset: float) -> list[list[float]]:
+def _windows_after_recovery(store: Path, offset: float, k0: int) -> list[list[float]]:
     """Rolling sync fits (the report's windows) after each drift event's recovery window.
 
+    The windows start at the closed-loop start ``k0``, as the report's do (a live twin
+    starts it once it has caught up with the samples queued while it identified).
     Segment ``i``: windows ending after event ``i`` + the recovery window and before
     event ``i + 1``; segment 0 is the closed loop before the first event.
     """
@@ -170,7 +172,6 @@ def _windows_after_recovery(store: Path, offset: float) -> list[list[float]]:
         m = h.measurements(run.run_id)
         preds = {p.k + 1: float(p.y_pred[0]) for p in h.predictions(run.run_id)}  # one ahead
     cfg = run.config["twin"]
-    k0 = int(round(cfg["ident_duration"] / cfg["dt"]))
     y_pred = np.array([preds.get(int(k), np.nan) for k in m.k])
     ends, fits = rolling_fit(m.y, y_pred, cfg["monitor_window"], cfg["monitor_stride"], k0)
     t_end = m.t[ends - 1] + offset  # on the plant's clock
@@ -236,11 +237,15 @@ def _end_to_end_run(tmp_path: Path) -> tuple[dict, list[list[float]], str]:
     n, _, _ = store_state(store)
     assert n == stop["n_samples"] and n * 0.02 >= 60.0  # >= 60 s of plant time
     metrics = json.loads((out / "metrics.json").read_text())
-    segments = _windows_after_recovery(store, offset)
+    k0 = int(round(metrics["closed_loop_start_s"] / metrics["dt"]))
+    segments = _windows_after_recovery(store, offset, k0)
+    ident = metrics["identification"]
     figures = (f"speed x{speed:g} (the server ran at x{served_speed:.1f}): {n} samples in "
                f"{stop['wall_s']:.1f} s wall "
                f"({stop['samples_per_s']:.0f}/s for {50 * speed:.0f}/s published), twin from "
-               f"plant time {offset:.1f} s, drift at {E2E_EVENTS}; re-identifications "
+               f"plant time {offset:.1f} s, identified in {ident['elapsed']:.2f} s wall, "
+               f"closed loop from sample {k0} (identification to {ident['n_samples']}), "
+               f"drift at {E2E_EVENTS}; re-identifications "
                f"{metrics['reidentifications']}; rolling sync fit min before the first drift "
                f"{min(segments[0], default=float('nan')):.2f} %, after each recovery window "
                f"{[round(min(f), 2) if f else None for f in segments[1:]]} %, mean "
@@ -273,10 +278,11 @@ def test_end_to_end_sync_fit_after_each_recovery_window(tmp_path):
     """Acceptance of #11: rolling sync fit >= 95 % after each recovery window (and before the
     first drift), 0 constraint violations.
 
-    In the slow set: measured on a quiet 2-core machine it holds after the drift recoveries,
-    but the windows just after the closed loop starts (the twin catching up with the samples
-    queued while it identified) and the recovery time under CPU load from other processes
-    still miss it (issue #11 stays open on this line).
+    In the slow set: the windows start at the closed-loop start, once the twin has caught
+    up with the samples queued while it identified (as the report's do); on the shared
+    2-core machine it passed 2 of 7 runs: the loop still falls behind the x10 plant while
+    the background worker runs, holds its input, and windows with a flat output miss 95 %
+    (issue #11 stays open on this line; docs/service.md has the figures).
     """
     metrics, segments, figures = _end_to_end_run(tmp_path)
     assert all(segments) and all(min(f) >= 95.0 for f in segments), figures

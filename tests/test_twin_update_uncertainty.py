@@ -229,3 +229,15 @@ def test_the_serve_help_shows_the_key(capsys):
     assert main(["twin", "serve", "--help"]) == 0
     out = " ".join(capsys.readouterr().out.split())
     assert "--estimator-max-relative-width VALUE defer a DNN update" in out
+
+
+def test_twin_serve_hands_the_key_to_the_update_module(tmp_path):
+    from kautztwin.service import TwinService
+    from kautztwin.twin import make_plant
+
+    values = {"plant.kind": "hydraulic", "service.out": str(tmp_path), "model.quick": "true"}
+    plant = make_plant("hydraulic")
+    on = TwinService(load_service_config(None, {**values, "estimator.max_relative_width": "0.05"}))
+    assert on._twin_config(plant, plant.dt, ()).updater["max_relative_width"] == 0.05
+    off = TwinService(load_service_config(None, values))
+    assert "max_relative_width" not in off._twin_config(plant, plant.dt, ()).updater

@@ -351,6 +351,9 @@ class TwinService:
             seed=cfg.plant["seed"], faults=None, drift_events=drift_events,
             static_twin=m["static_twin"], **overrides,
         )
+        width = cfg.values["estimator"]["max_relative_width"]
+        if width is not None:  # defer DNN updates whose band is wider than this share
+            base = replace(base, updater={**base.updater, "max_relative_width": width})
         if cfg.mpc:
             if base.mpc is None:
                 raise DataError("[mpc] settings need a controlled plant profile")

@@ -56,7 +56,10 @@ decision to the period the plant applies it), over which the MPC predicts
 and decides again once it has caught up.  It also holds its input until the plant reports the
 last new one applied, so no input is overtaken on the wire and jumped over
 (the rate limit holds at the plant): against a live plant the controller
-decides once per round trip of the link.
+decides once per round trip of the link.  The initial identification stalls the loop
+while a live plant goes on sampling: the loop then takes the queued samples holding the
+last identification input and starts the closed loop once it has caught up
+(:meth:`DigitalTwin._catching_up`; ``k_closed_loop`` of the run is that sample).
 
 **Resume.**  :meth:`DigitalTwin.start` with ``resume=True`` looks for an unfinished
 run with the same configuration in the store.  Its committed samples are
@@ -319,7 +322,9 @@ class DigitalTwin:
         self._faults = FaultPlan.for_config(cfg)
         self._sanitizer = make_sanitizer(cfg)
         self._k = 0
-        self._k_cl = cfg.n_ident
+        self._k_id = cfg.n_ident  # the twin is born (the initial identification)
+        self._k_cl = cfg.n_ident  # the closed loop starts (later: a live plant catching up)
+        self._k_cl_stored: int | None = None  # where a resumed live run's closed loop started
         self._v_prev = cfg.operating_input
         self._d_prev = 0.0
         self._u_prev = cfg.operating_input
@@ -336,6 +341,8 @@ class DigitalTwin:
         self._reading = self.plant.reset()
         self._t_offset = 0.0
         self._replayable = not getattr(self.plant, "connected", False)
+        if self._replay.rows is not None and not self._replayable:
+            self._k_cl_stored = self._stored_closed_loop()
         self._started = True
         self.clock.start()
         self._clock_t0 = 0.0
@@ -430,7 +437,7 @@ class DigitalTwin:
         """``(phase, u, v, d, mpc_ms)``: the input of sample ``k`` (identification, control)."""
         cfg = self.config
         mpc_ms = math.nan
-        if k < self._k_cl:
+        if k < self._k_id:
             phase = "identification"
             u = self._recorded_input(k) if not cfg.controlled else float(self._u_ident[k])
             v, d = u, 0.0
@@ -439,13 +446,60 @@ class DigitalTwin:
             u = self._recorded_input(k)
             v, d = u, 0.0
         else:
-            phase = "closed-loop"
-            if k == self._k_cl:
+            if k == self._k_id:
                 self._begin_twin(k, t_k)
-            u, v, d, mpc_ms = self._track(k, t_k, y_raw, clean, late)
-        if k == self._k_cl and not cfg.controlled:
+            if self._catching_up(k, t_k):
+                phase = "identification"  # its last input held until the loop has caught up
+                u = v = self._u_prev
+                d = 0.0
+                self.controller.advance(v, d)
+            else:
+                phase = "closed-loop"
+                u, v, d, mpc_ms = self._track(k, t_k, y_raw, clean, late)
+        if k == self._k_id and not cfg.controlled:
             self._begin_twin(k, t_k)
         return phase, u, v, d, mpc_ms
+
+    def _catching_up(self, k: int, t_k: float) -> bool:
+        """Whether the closed loop of a live plant still waits at sample ``k`` (controlled run).
+
+        The initial identification (at sample ``n_ident``) stalls the loop while a
+        live plant goes on sampling: the samples queued meanwhile
+        (``meta['queued']``) are history.  The loop takes them (the twins update
+        on them) holding the last identification input, which the plant applies
+        all along, and starts the closed loop at the first sample after
+        ``n_ident`` with at most :data:`MAX_QUEUED` newer ones waiting (or after
+        at most ``config.n_ident`` samples): the controller then
+        starts from a recent sample, its reference from the output it measures.
+        A simulated or replayed plant starts it at once (``k_closed_loop = n_ident``).
+        The start is stored as a ``'phase'`` event with ``k_closed_loop``; the replay
+        of a resumed run starts it there.
+        """
+        if k != self._k_cl or self._replayable:
+            return False
+        if self._replay.active(k):
+            stored = self._k_cl_stored
+            waiting = stored is None or k < stored
+        else:
+            # at k_id the reading predates the identification that just stalled the loop
+            waiting = (k == self._k_id or self._behind(k)) and k - self._k_id < self.config.n_ident
+        if waiting:
+            self._k_cl = k + 1
+            return True
+        self._record.event(
+            "phase", k, t_k, f"closed loop from sample {k}: {k - self._k_id} samples queued "
+            "during the identification taken first", {"k_closed_loop": k,
+                                                       "caught_up": k - self._k_id})
+        return False
+
+    def _stored_closed_loop(self) -> int | None:
+        """The closed-loop start stored by the run being resumed (``None``: not reached)."""
+        assert self.run_id is not None
+        for e in self.history.events(self.run_id, "phase"):
+            k = (e.payload or {}).get("k_closed_loop")
+            if isinstance(k, int):
+                return k
+        return None
 
     def _track(
         self, k: int, t_k: float, y_raw: float, clean: bool, late: bool
@@ -489,7 +543,7 @@ class DigitalTwin:
         assert versions is not None
         upd_ms = math.nan
         fit = fit_s = math.nan
-        if self.updater is not None and k >= self._k_cl:
+        if self.updater is not None and k >= self._k_id:
             r = self.updater.step(u, y_raw, t_k)
             a["y_pred"][k] = r.y_pred_frozen
             if r.model_update is None:
@@ -531,10 +585,10 @@ class DigitalTwin:
             return u  # a late sample (after NaN readings): its period is not this one
         a = self._record.arrays
         a["u"][k] = applied
-        if k >= self._k_cl and self.config.controlled and self.controller.model is not None:
+        if k >= self._k_id and self.config.controlled and self.controller.model is not None:
             a["command"][k] += applied - u  # a rebuilt controller starts from what was applied
             self.controller.revise_last_input(applied - u)
-        if k >= self._k_cl:
+        if k >= self._k_id:
             for upd in (self.updater, self.static):
                 if upd is not None:
                     upd.revise_last_input(applied)

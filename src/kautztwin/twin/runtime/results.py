@@ -123,7 +123,8 @@ class TwinRun:
     n_done : int
         Samples processed (``config.n_samples`` for a complete run).
     k_closed_loop : int
-        First sample after the identification phase.
+        First sample under control: right after the identification phase, or for a live
+        plant the first sample after it once the samples queued meanwhile are taken in.
     arrays : mapping of str to ndarray
         ``t, y, y_clean`` (NaN where the sample was not usable), ``u, command,
         dither, setpoint, reference, y_pred, y_pred_static, mpc_ms, update_ms``
