@@ -218,11 +218,14 @@ def _end_to_end_run(tmp_path: Path) -> tuple[dict, list[list[float]], str]:
                 time.sleep(0.2)
             served_speed = server.k * server.dt / (time.monotonic() - served_from)
             proc.send_signal(signal.SIGTERM)
-            stdout = proc.communicate(timeout=60)[0]
+            # wait, not communicate: communicate would read stderr too, racing the reader
+            # thread for the last lines (the 'stop' event); stdout is a few lines
+            proc.wait(timeout=60)
+            stdout = proc.stdout.read()
     finally:
         if proc.poll() is None:
             proc.kill()
-            proc.communicate()
+            proc.wait(timeout=30)
     stderr = lines.text()
     assert proc.returncode == 0, stderr[-3000:]
     assert "twin serve opcua" in stdout
