@@ -249,6 +249,35 @@ def test_estimator_chooses_the_true_order_on_held_out_data():
     np.testing.assert_allclose(est.predict(u2), est.model_.simulate(u2))
 
 
+@pytest.mark.parametrize("rest_at", ["zero", "first"])
+def test_estimator_input_offset_auto_finds_the_operating_point(rest_at):
+    """A record that starts at rest at u = 0 with u[0] != 0 (a heater switched on at the
+    first sample), and one that starts at the equilibrium of u[0]: 'auto' picks the offset
+    that is true in each, and the noise-free fit is then exact."""
+    rng = np.random.default_rng(21)
+    truth = _truth_real()
+    u = _steps(rng, 600, 2) + 0.5
+    assert np.all(u[0] != 0.0)
+    u_true = np.zeros(2) if rest_at == "zero" else u[0]
+    y = _response(truth, u - u_true)
+    est = MIMOKautzEstimator(3).fit(u, y, dt=DT)
+    np.testing.assert_array_equal(est.input_offset_, u_true)
+    assert len(est.offset_selection_) == 2
+    assert est.score(u, y) > 99.99
+    # the other offset, forced, cannot fit this record exactly
+    wrong = u[0] if rest_at == "zero" else np.zeros(2)
+    forced = MIMOKautzEstimator(3, input_offset=wrong).fit(u, y, dt=DT)
+    assert forced.score(u, y) < 99.0
+    assert MIMOKautzEstimator(3, input_offset=None).fit(u, y, dt=DT).input_offset_.tolist() \
+        == u[0].tolist()
+
+
+def test_estimator_input_offset_bad_string():
+    u = _steps(np.random.default_rng(2), 100, 2)
+    with pytest.raises(DataError, match="input_offset must be"):
+        MIMOKautzEstimator(1, input_offset="first").fit(u, u, dt=DT)
+
+
 def test_estimator_not_fitted():
     with pytest.raises(NotFittedError, match="not fitted"):
         MIMOKautzEstimator().predict(np.zeros((5, 2)))

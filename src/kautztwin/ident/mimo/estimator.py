@@ -24,6 +24,9 @@ from .fit import (
 
 __all__ = ["MIMOKautzEstimator"]
 
+# held-out normalised mean square below which a model counts as exact (fit 99.9999 %)
+_EXACT = 1e-12
+
 
 def _warm(basis: Any, rate_lo: float, hi: float) -> list:
     """Start for one more real pole: the previous poles plus one in the widest log-gap."""
@@ -50,7 +53,8 @@ class MIMOKautzEstimator:
     normalised mean squared error on the held-out samples (per output for per-output
     poles, the mean over the outputs otherwise).  The pick is the smallest order within one
     standard error of the best (relative :math:`\sqrt{2 / n_{held\,out}}`, white residuals),
-    so an order that validates worse is never preferred and noise-level gains buy no poles;
+    so an order that validates worse is never preferred and noise-level gains buy no poles
+    (on noise-free data, every order with a held-out fit above 99.9999 % counts as exact);
     the search stops once two more poles bring no gain beyond that margin.  Per-output
     poles are chosen over shared ones only when they beat them by the same margin.  Each
     order is started from the spreads of real poles and from the previous order's poles
@@ -72,8 +76,12 @@ class MIMOKautzEstimator:
         See :func:`identify_mimo`.
     fit_offset : bool, default=True
         Estimate the output offsets.
-    input_offset : array-like of shape (n_inputs,), optional
-        Input operating point; ``u[0]`` when omitted.
+    input_offset : array-like of shape (n_inputs,), 'auto' or None, default='auto'
+        Input operating point.  ``None``: ``u[0]`` (the plant rests at the equilibrium of
+        the first input).  ``'auto'``: ``u[0]`` or zero (the plant rests at the
+        equilibrium of a zero input, e.g. a heater switched on at the first sample),
+        whichever a probe fit (2 shared poles, or ``n_poles``) predicts better on the
+        held-out end of the record; the same as ``u[0]`` when ``u[0]`` is zero.
     min_rate : float, optional
         Slowest pole decay rate, 1/s (``3 / T`` when omitted).
     max_iter : int, default=50
@@ -93,6 +101,11 @@ class MIMOKautzEstimator:
         The structure used, ``'shared'`` or ``'per_output'``.
     selection_ : list of dict
         Every candidate tried: ``poles``, ``n_poles``, ``holdout_fit_percent`` (per output).
+    input_offset_ : ndarray of shape (n_inputs,)
+        The input operating point used.
+    offset_selection_ : list of dict
+        With ``input_offset='auto'`` and a nonzero first input: each candidate
+        (``input_offset``) with its probe fit's ``holdout_fit_percent``; else empty.
     n_inputs_, n_outputs_ : int
         Channel counts.
 
@@ -125,7 +138,7 @@ class MIMOKautzEstimator:
         burn_in: int = 0,
         initial_state: str = "zero",
         fit_offset: bool = True,
-        input_offset: ArrayLike | None = None,
+        input_offset: ArrayLike | str | None = "auto",
         min_rate: float | None = None,
         max_iter: int = 50,
         tol: float = 1e-8,
@@ -173,21 +186,20 @@ class MIMOKautzEstimator:
         dt = check_positive(dt, "dt")
         structure = check_choice(self.poles, "poles", ("shared", "per_output", "auto"))
         n, n_out = y2.shape[0], y2.shape[1]
-        u0 = _input_offset(self.input_offset, u2)
         rate_lo = _rate_lo(self.min_rate, n, dt)
         auto = isinstance(self.n_poles, str)
         if auto and self.n_poles != "auto":
             raise DataError(f"n_poles must be an int, poles or 'auto', got {self.n_poles!r}")
         self.selection_: list[dict[str, Any]] = []
+        self.offset_selection_: list[dict[str, Any]] = []
+        u0 = self._choose_offset(u2, y2, dt)
+        self.input_offset_ = u0
         if not auto and structure != "auto":
             starts = _starts(self.n_poles, n, dt, rate_lo)
             groups = [starts] * (n_out if structure == "per_output" else 1)
             fit = _fit_record(u2, y2, groups, **self._settings(dt, u0, rate_lo))
             return self._finish(fit, structure, u2.shape[1])
-        holdout = check_number(self.holdout, "holdout")
-        if not 0.05 <= holdout <= 0.8:
-            raise DataError(f"holdout must lie in [0.05, 0.8], got {holdout}")
-        n_est = n - int(round(holdout * n))
+        n_est = self._holdout_split(n)
         structures = ("shared", "per_output") if structure == "auto" else (structure,)
         orders = (
             range(1, check_int(self.max_poles, "max_poles", 1) + 1) if auto else [None]
@@ -236,6 +248,44 @@ class MIMOKautzEstimator:
         fit = _fit_record(u2, y2, starts, **self._settings(dt, u0, rate_lo))
         return self._finish(fit, chosen, u2.shape[1])
 
+    def _holdout_split(self, n: int) -> int:
+        holdout = check_number(self.holdout, "holdout")
+        if not 0.05 <= holdout <= 0.8:
+            raise DataError(f"holdout must lie in [0.05, 0.8], got {holdout}")
+        return n - int(round(holdout * n))
+
+    def _choose_offset(self, u2: NDArray, y2: NDArray, dt: float) -> NDArray[np.float64]:
+        """The input operating point: as given, or ``u[0]`` against zero on held-out data."""
+        if not (isinstance(self.input_offset, str) and self.input_offset == "auto"):
+            if isinstance(self.input_offset, str):
+                raise DataError(
+                    f"input_offset must be 'auto', None or one number per input, got "
+                    f"{self.input_offset!r}"
+                )
+            return _input_offset(self.input_offset, u2)
+        first = u2[0].copy()
+        if not np.any(first):
+            return first
+        n_est = self._holdout_split(u2.shape[0])
+        rate_est = _rate_lo(self.min_rate, n_est, dt)
+        probe = 2 if isinstance(self.n_poles, str) else self.n_poles
+        best, best_err = first, math.inf
+        for u0 in (first, np.zeros_like(first)):
+            starts = _starts(probe, n_est, dt, rate_est)
+            try:
+                fit = _fit_record(u2[:n_est], y2[:n_est], [starts],
+                                  **self._settings(dt, u0, rate_est))
+            except DataError:
+                return first  # too few samples to compare: the documented fallback
+            score = _fit_percent(y2[n_est:], fit.simulate(u2, initial=True)[n_est:])
+            self.offset_selection_.append({
+                "input_offset": u0.tolist(), "holdout_fit_percent": score.tolist(),
+            })
+            err = float(np.mean((1.0 - score / 100.0) ** 2))
+            if err < best_err:
+                best, best_err = u0, err
+        return best
+
     @staticmethod
     def _choose(
         cands: dict[tuple[str, int], list[tuple[float, Any]]], structures: tuple[str, ...],
@@ -250,7 +300,8 @@ class MIMOKautzEstimator:
             for g in range(1 if s == "shared" else n_out):
                 hist = cands[(s, g)]
                 best = min(h[0] for h in hist)
-                err, basis = next(h for h in hist if h[0] <= best * (1.0 + se))
+                # below _EXACT (fit 99.9999 %) every order counts as exact: the smallest wins
+                err, basis = next(h for h in hist if h[0] <= max(best * (1.0 + se), _EXACT))
                 picks[s].append(basis)
                 errs.append(err)
             errors[s] = float(np.mean(errs))
