@@ -184,9 +184,21 @@ def memory_per_asset(n: int) -> dict[str, float]:
             "dither_bits_bytes_per_asset": float(np.ceil(cfg.n_samples / 8))}
 
 
-def ray_check(n: int, duration: float) -> dict[str, Any]:
-    """A 2-worker local Ray run of ``n`` assets against the single-process run: same metrics?"""
-    from kautztwin.twin.fleet.shards import run_sharded
+def ray_check(n: int, duration: float, kill: bool = False) -> dict[str, Any]:
+    """A 2-worker local Ray run of ``n`` assets against the single-process run: same metrics?
+
+    With ``kill`` the shards write their stores and the first shard's worker
+    process is killed (``SIGKILL``) once it has committed about half the run;
+    the report then says at which sample the shard resumed, how many recomputed
+    samples differed from the stored ones, and whether every stored sample is
+    there exactly once.
+    """
+    import signal
+    import sqlite3
+
+    import ray
+
+    from kautztwin.twin.fleet.shards import make_actors, merge_runs
     from kautztwin.twin.fleet.simulate import summarize
 
     cfg = TwinConfig.for_plant("hydraulic", duration=duration, quick=True, static_twin=False,
@@ -196,8 +208,52 @@ def ray_check(n: int, duration: float) -> dict[str, Any]:
     with Fleet(plant, cfg, workers=2) as fleet:
         single = fleet.run(progress=False)
     t_single = time.perf_counter() - t0
+    print(f"  single process: {t_single:.0f} s", flush=True)
+    out: dict[str, Any] = {"assets": n, "duration_s": duration, "single_process_wall_s": t_single}
     t0 = time.perf_counter()
-    sharded, assets_s = run_sharded(n, cfg, n_shards=2, seed=7, drift_spread=0.3)
+    with tempfile.TemporaryDirectory() as tmp:
+        try:
+            actors = make_actors(n, cfg, n_shards=2, seed=7, drift_spread=0.3,
+                                 store_dir=tmp if kill else None)
+            pids = ray.get([a.pid.remote() for a in actors])
+            refs = [a.run.remote() for a in actors]
+            if kill:
+                shard0 = (n + 1) // 2
+                k_kill = cfg.n_ident + (cfg.n_samples - cfg.n_ident) // 2
+                db = Path(tmp) / "shard_0.sqlite"
+                committed = 0
+                while committed < shard0 * k_kill:
+                    time.sleep(0.5)
+                    try:
+                        with sqlite3.connect(db) as con:
+                            committed = con.execute(
+                                "SELECT COUNT(*) FROM fleet_samples").fetchone()[0]
+                    except sqlite3.Error:
+                        committed = 0
+                os.kill(pids[0], signal.SIGKILL)
+                out["killed_after_committed_rows"] = int(committed)
+                out["killed_at_s"] = time.perf_counter() - t0
+                print(f"  killed shard 0 after {committed} committed rows", flush=True)
+            parts = ray.get(refs)
+        finally:
+            ray.shutdown()
+        if kill:
+            rows = {}
+            for j in range(2):
+                with sqlite3.connect(Path(tmp) / f"shard_{j}.sqlite") as con:
+                    total, distinct = con.execute(
+                        "SELECT COUNT(*), COUNT(DISTINCT asset * 100000 + k) FROM fleet_samples"
+                    ).fetchone()
+                rows[f"shard_{j}"] = {"rows": int(total), "distinct": int(distinct)}
+            out["store_rows"] = rows
+            out["every_sample_exactly_once"] = all(
+                r["rows"] == r["distinct"] == len(p["indices"]) * cfg.n_samples
+                for r, p in zip(rows.values(), sorted(parts, key=lambda p: int(p["indices"][0])),
+                                strict=True))
+    sharded = merge_runs(cfg, parts)
+    assets_s: list[dict[str, float]] = []
+    for p in sorted(parts, key=lambda p: int(p["indices"][0])):
+        assets_s += p["assets"]
     t_sharded = time.perf_counter() - t0
     s1, s2 = summarize(single, assets), summarize(sharded, assets_s)
     keys = ("sync_fit_last", "sync_fit_mean", "sync_fit_min", "desync_events",
@@ -205,9 +261,9 @@ def ray_check(n: int, duration: float) -> dict[str, Any]:
     same = {k: s1[k] == s2[k] for k in keys}
     diff = {name: float(np.nanmax(np.abs(single.arrays[name] - sharded.arrays[name])))
             for name in ("y", "u", "y_pred")}
-    return {"assets": n, "duration_s": duration, "single_process_wall_s": t_single,
-            "ray_2_workers_wall_s": t_sharded, "metrics_equal": same,
-            "max_abs_difference": diff, "summary": s1}
+    out.update({"ray_2_workers_wall_s": t_sharded, "metrics_equal": same,
+                "max_abs_difference": diff, "resume": dict(sharded.resume), "summary": s1})
+    return out
 
 
 def rss_mib() -> float:
@@ -220,12 +276,15 @@ def main() -> None:
     ap.add_argument("--ray", type=int, default=0, metavar="N",
                     help="only the Ray check: N assets on 2 local workers vs one process "
                     "(merged into the existing JSON)")
+    ap.add_argument("--kill", action="store_true",
+                    help="with --ray: kill one worker mid-run (it resumes from its store)")
     args = ap.parse_args()
     if args.ray:
         old = json.loads(OUT.read_text()) if OUT.exists() else {}
-        old[f"ray_{args.ray}"] = ray_check(args.ray, 10.0)
-        print(json.dumps(old[f"ray_{args.ray}"]["metrics_equal"]),
-              old[f"ray_{args.ray}"]["max_abs_difference"])
+        key = f"ray_{args.ray}" + ("_kill" if args.kill else "")
+        old[key] = ray_check(args.ray, 10.0, kill=args.kill)
+        print(json.dumps(old[key]["metrics_equal"]), old[key]["max_abs_difference"],
+              old[key].get("resume"), old[key].get("every_sample_exactly_once"))
         OUT.write_text(json.dumps(old, indent=2, default=float))
         return
     steps = 20 if args.quick else 60
