@@ -89,6 +89,18 @@ class TestEqualsSolve:
         share = _compare_along_loop(hyd_plant, make, HYD_STEPS)
         assert 0.1 < share < 0.9  # both branches (screen and DAQP) were taken
 
+    @pytest.mark.parametrize("kwargs", [dict(basis=(0.8, 8)), dict(full_horizon=True)])
+    def test_longest_benchmark_horizon(self, hyd_plant, kwargs):
+        # N_p = 200 (bench_mpc's longest horizon): 600 rows, 200 variables for the full MPC
+        kw = dict(kwargs)
+        basis = kw.pop("basis", None)
+
+        def make():
+            return MPCProblem(hyd_plant, basis, 200, r=0.01, **HYD_LIMITS, **kw)
+
+        share = _compare_along_loop(hyd_plant, make, HYD_STEPS)
+        assert 0.1 < share < 0.9
+
     @pytest.mark.parametrize("floats", [True, False])
     def test_reference_closed_loop(self, ref_plant, floats):
         def make():
@@ -113,6 +125,31 @@ class TestEqualsSolve:
             assert mv.du.shape == mv.u.shape == (2,)
             np.testing.assert_allclose(mv.du, run.du[k], rtol=0, atol=ATOL)
             np.testing.assert_allclose(mv.u, run.u[k], rtol=0, atol=ATOL)
+
+    def test_rows_the_inputs_cannot_move_along_a_closed_loop(self):
+        # a two-sample delay: the y(k+1) rows are zero rows, screened in the same reduction
+        # as the DAQP rows; the output limit binds, so DAQP runs with the zero rows met
+        delay = ([[0.0, 0.0], [1.0, 0.0]], [1.0, 0.0], [0.0, 1.0])
+        plant = plant_model(delay)
+        kw = dict(r=0.1, y_max=1.0, y_min=-0.4, u_min=-5.0, u_max=5.0, du_max=0.8)
+
+        def make():
+            return MPCProblem(plant, (0.5, 4), 20, **kw)
+
+        assert make()._qp._drows.zero_idx.size == 1
+        share = _compare_along_loop(plant, make, np.repeat([1.2, -0.6, 0.5], 25))
+        assert 0.1 < share < 0.9
+
+    def test_lower_bound_binds(self, ref_plant):
+        # DAQP's lower bounds are the screen's slacks negated back: a step down where only
+        # lower limits (du_min, then y_min) can bind gives solve()'s move and du_min itself
+        a = MPCProblem(ref_plant, (0.6, 6), 50, r=0.05, **REF_LIMITS)
+        b = MPCProblem(ref_plant, (0.6, 6), 50, r=0.05, **REF_LIMITS)
+        x = np.r_[np.zeros(4), 0.0]
+        res, mv = a.solve(x, -1.0, u_prev=0.0), b.move(x, -1.0, u_prev=0.0)
+        assert mv.iterations > 0 and res.success and mv.success
+        assert mv.du[0] == pytest.approx(-0.3, abs=1e-9)
+        assert mv.du[0] == pytest.approx(res.du[0], abs=ATOL)
 
     def test_screened_sample_is_the_unconstrained_law(self, ref_plant):
         problem = MPCProblem(ref_plant, (0.6, 6), 50, r=0.05, **REF_LIMITS)

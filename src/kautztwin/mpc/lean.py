@@ -10,17 +10,23 @@ every sample.  Everything that does not change between samples is built once:
   are affine in :math:`v = [x;\ u_{prev};\ r;\ 1]`.  DAQP is set up once without a
   linear term, so a sample only hands it new bounds (its update is then a copy of
   the bounds, not the products with ``f`` that a linear term needs);
-* one matrix maps ``v`` at once to the unconstrained first move and input,
-  the DAQP bounds, the same bounds again as slacks ``[upper; -lower]`` of
-  :math:`\delta = 0`, and the slacks of the rows the inputs cannot move
-  (:class:`~kautztwin.mpc.constraints.DAQPRows`);
+* one matrix maps ``v`` at once to the unconstrained first move and input and
+  the slacks of :math:`\delta = 0`: ``[upper; -lower]`` of the DAQP rows and those
+  of the rows the inputs cannot move (:class:`~kautztwin.mpc.constraints.DAQPRows`,
+  less their margin).  DAQP reads the upper bounds in place and the lower ones
+  negated back into a preallocated buffer (negation is exact: the same numbers);
 * the product is written into a preallocated buffer that DAQP reads through
-  fixed views, so a sample allocates only DAQP's own result and the returned move.
+  fixed views, so a sample allocates only DAQP's own result and the returned move;
+* every reduction and negation calls the ufunc itself (``np.minimum.reduce``,
+  ``np.negative(..., out=)``), not the method wrappers around it.
 
 A sample is therefore: three assignments into ``v``, one matrix-vector product, a
 screen (when every slack of :math:`\delta = 0` is :math:`\ge 0` the unconstrained
 optimum meets every row and is the QP's solution: DAQP is not called), else DAQP's
-update and solve, and :math:`\Delta u(k) = L(0)^T\eta_u + L(0)^T\delta`.  The screen
+update and solve, and :math:`\Delta u(k) = L(0)^T\eta_u + L(0)^T\delta`.  One
+reduction over all slacks screens a sample; only when it fails are the rows the
+inputs cannot move looked at on their own (any of them below its margin: the
+sample goes to :meth:`~kautztwin.mpc.MPCProblem.solve`).  The screen
 asks for exact feasibility (no tolerance), so it never accepts a point that DAQP
 would not.  Arguments are not validated on this path beyond what is free: a wrong
 shape shows up as a failed assignment into ``v`` and a non-finite value as a
@@ -51,6 +57,9 @@ __all__ = ["LeanMove"]
 
 # a zero-row slack (in units of its tolerance) below this goes to solve() to be decided there
 _ZERO_ROW_MARGIN = 1e-9
+# the ufuncs themselves: ndarray.min() goes through a Python wrapper first
+_min = np.minimum.reduce
+_negative = np.negative
 
 
 class LeanMove:
@@ -115,9 +124,12 @@ class LeanMove:
             A_full[:n_simple, :n_simple] = np.eye(n_simple)  # simple bounds: unit rows
             A_full[n_simple:] = drows.A
             shift = A_full @ Kv
-            lower = self._bound_rows(drows.lo0, drows.G, shift, -_INF, n_v)
-            # [lower; upper; -lower]: DAQP reads the first two, the screen the last two
-            blocks += [lower, self._bound_rows(drows.hi0, drows.G, shift, _INF, n_v), -lower]
+            # [upper; -lower]: the slacks of delta = 0 (eta_u feasible iff all >= 0); DAQP
+            # reads upper as it is and lower negated back (sign-exact, so the same numbers)
+            blocks += [
+                self._bound_rows(drows.hi0, drows.G, shift, _INF, n_v),
+                -self._bound_rows(drows.lo0, drows.G, shift, -_INF, n_v),
+            ]
         n_zero = 0 if drows is None else drows.zero_idx.size
         if n_zero:
             blocks.append(self._zero_rows(rows, drows.zero_idx, n_v))
@@ -128,12 +140,16 @@ class LeanMove:
         self._v[-1] = 1.0
         out, h = self._out, 2 * n_u
         self._head = out[:h]  # [du; u] of the unconstrained optimum
-        self._bl = out[h : h + mp]
-        self._bu = out[h + mp : h + 2 * mp]
-        self._slack = out[h + mp : h + 3 * mp]  # [upper; -lower]: eta_u feasible iff all >= 0
-        self._zero = out[h + 3 * mp : h + 3 * mp + 2 * n_zero]
+        self._bu = out[h : h + mp]  # DAQP's upper bounds, read in place
+        self._nbl = out[h + mp : h + 2 * mp]  # minus DAQP's lower bounds ...
+        self._bl = np.empty(mp)  # ... negated into this buffer when DAQP is called
+        # every slack of the screen in one view: [upper; -lower; zero rows less their margin]
+        self._slack = out[h:]
+        self._zero = out[h + 2 * mp :]
+        self._has_slack = self._slack.size > 0
         self._n_zero = n_zero
         self._n = n
+        self._n_u = n_u
         self._sx = slice(0, n)
         self._su = slice(n, n + n_u)
         self._sr = slice(n + n_u, n + n_u + n_y)
@@ -174,6 +190,7 @@ class LeanMove:
         W[: idx.size, -1] = hi0 / tol + 1.0
         W[idx.size :, :nz] = -G / tol[:, None]
         W[idx.size :, -1] = -lo0 / tol + 1.0
+        W[:, -1] -= _ZERO_ROW_MARGIN  # the screen's ">= 0" is then "slack >= margin"
         return W
 
     def _setup_daqp(self, E: NDArray, A: NDArray, mp: int, max_iter: int, tol: float) -> Any:
@@ -218,14 +235,18 @@ class LeanMove:
         if not math.isfinite(sum(v.tolist())):
             return None
         self._W.dot(v, self._out)
-        if self._n_zero and self._zero.min() < _ZERO_ROW_MARGIN:
-            return None
-        n_u = self._su.stop - self._su.start
-        model = self._model
-        if model is None or self._slack.min() >= 0.0:
+        # one reduction screens every row: DAQP's rows and the rows the inputs cannot move
+        if not self._has_slack or _min(self._slack) >= 0.0:
             # the unconstrained optimum meets every row exactly: it is the QP's solution
             t = self._head.copy()
-            return MPCMove(t[:n_u], t[n_u:], True, 0 if model is None else 1, 0, 0.0)
+            n_u = self._n_u
+            return MPCMove(t[:n_u], t[n_u:], True, 0 if self._model is None else 1, 0, 0.0)
+        if self._n_zero and _min(self._zero) < 0.0:
+            return None  # a row the inputs cannot move is (nearly) broken: solve() decides
+        model = self._model
+        if model is None:
+            return None  # pragma: no cover - a negative slack without DAQP rows is a zero row
+        _negative(self._nbl, out=self._bl)
         if self._warm:
             model.update(bupper=self._bu, blower=self._bl)
         else:
@@ -235,4 +256,5 @@ class LeanMove:
             return None
         t = self._L0T2.dot(delta)
         t += self._head
+        n_u = self._n_u
         return MPCMove(t[:n_u], t[n_u:], True, 1, info["iterations"], info["solve_time"])
