@@ -163,6 +163,48 @@ def test_never_returns_a_higher_order_that_validates_worse():
             assert r["validation_fit_percent"] < est.model_.validation_fit_percent
 
 
+def honest_cand(n, m, crit, fit, rss, refined=False):
+    return _Candidate(n, m, np.full(n, -1.0 + 0j), 0.0, crit, fit, rss, refined=refined)
+
+
+def test_internal_split_judges_a_structure_by_its_estimate_not_its_luckiest_start():
+    # two starts of 3 poles: the one that fits the training rows best (rss 1.0) is the
+    # estimate; the other scores better on the held-out rows only by chance and must not
+    # decide the order (choosing among starts on held-out rows fits those rows too)
+    search = _Search.__new__(_Search)
+    search.honest = True
+    search.cands = [honest_cand(2, 0, 62.0, 77.8, 1.10),
+                    honest_cand(3, 0, 61.0, 77.9, 1.00),
+                    honest_cand(3, 0, 68.0, 76.0, 1.30)]
+    est = {(c.n, c.m): c for c in search.estimates()}
+    assert est[(3, 0)].rss == 1.00 and est[(3, 0)].criterion == 61.0
+    assert search.pick(0.5).n == 2
+    search.honest = False  # with a validation part every candidate competes, as before
+    assert search.pick(0.5).criterion == 68.0
+
+
+def test_an_estimate_that_fits_worse_than_a_structure_it_contains_does_not_compete():
+    # (5, 0) contains (2, 0): fitting the training rows 5 points worse, it is an
+    # unconverged start, whatever its held-out score; (4, 1) fits better and competes
+    search = _Search.__new__(_Search)
+    search.honest = True
+    search.cands = [honest_cand(2, 0, 60.0, 77.0, 1.0), honest_cand(5, 0, 70.0, 72.0, 1.5),
+                    honest_cand(4, 1, 64.0, 77.5, 0.9)]
+    assert {(c.n, c.m) for c in search.estimates()} == {(2, 0), (4, 1)}
+    assert (search.pick(0.5).n, search.pick(0.5).m) == (4, 1)  # 64 - 2 > 60 - 1
+    assert search.pick(2.0).n == 2  # 64 - 8 < 60 - 4
+
+
+def test_internal_split_search_stops_screening_when_the_pick_settles():
+    # a second-order plant: orders far above 2 are not screened, the pick is 2 poles
+    rec, y0 = io_record(([2.0], np.poly([-0.5, -3.0]).real), n=600, dt=0.05, noise=0.05)
+    est = TransferFunctionEstimator("auto").fit(rec)
+    assert est.n_poles_ == 2
+    assert est.search_["screened_to"] < est.search_["bound"]
+    assert "last 33%" in est.search_["criterion"]
+    assert est.model_.fit_percent == pytest.approx(fit_percent(np.asarray(rec.y), y0), abs=0.5)
+
+
 # --------------------------------------------------------------------------- warm starts
 def test_screening_warm_starts_from_the_lower_orders(six_pole_fit):
     est, rec, _ = six_pole_fit

@@ -43,7 +43,9 @@ The package, one job per module: :mod:`.model` (the result,
 parameterisation and the variable-projection problem), :mod:`.starts`
 (initial poles from orthonormal-basis regressions), :mod:`.refine` (the
 multi-start output-error refinement of one order), :mod:`.statistics`
-(covariance, fits, AIC, validation) and :mod:`.estimator`
+(covariance, fits, AIC, validation), :mod:`.structure` (the structure search
+of ``n_poles='auto'``), :mod:`.integrator` (integrating models ``G(s)/s``,
+fitted as ``G`` on the integrated input) and :mod:`.estimator`
 (:class:`TransferFunctionEstimator`: parameters, order selection, prediction).
 """
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 from collections.abc import Sequence
 from typing import Any
@@ -13,6 +14,7 @@ from ..._validation import check_choice
 from ...exceptions import DataError, KautzTwinError, NotFittedError
 from ..records import MIN_SAMPLES, Record
 from ..simulate import INTERSAMPLE
+from .integrator import fit_integrating
 from .problem import _pooled_fit, _Problem
 from .refine import fit_order
 from .statistics import nuisance
@@ -76,6 +78,16 @@ class TransferFunctionEstimator:
         ``max_iter * (n_params + 1)``).
     tol : float, default=1e-10
         ``ftol``, ``xtol`` and ``gtol`` of the refinement.
+    integrator : bool, optional
+        A pole at :math:`s = 0` (an integrating plant: a level fed by a flow, a
+        position driven by a velocity), fitted as ``G(s)/s`` with ``G`` stable
+        (:mod:`~kautztwin.ident.tfest.integrator`; held input/output records
+        only).  ``True``: always (``n_poles`` counts the integrator);
+        ``False``: never.  ``None`` (default): never for a given ``n_poles``;
+        with ``n_poles='auto'`` the integrating structures are searched too
+        when the data show a mode slower than the records, and chosen only if
+        their criterion is better.  The model then acts on
+        ``u - model_.input_level``.
     n_restarts : int, default=0
         Extra refinements from randomly perturbed copies of the best start.
     random_state : int or numpy.random.Generator, optional
@@ -127,6 +139,7 @@ class TransferFunctionEstimator:
         max_order: int | None = None,
         max_iter: int = 100,
         tol: float = 1e-10,
+        integrator: bool | None = None,
         n_restarts: int = 0,
         random_state: int | np.random.Generator | None = None,
     ) -> None:
@@ -141,6 +154,7 @@ class TransferFunctionEstimator:
         self.max_order = max_order
         self.max_iter = max_iter
         self.tol = tol
+        self.integrator = integrator
         self.n_restarts = n_restarts
         self.random_state = random_state
 
@@ -158,7 +172,8 @@ class TransferFunctionEstimator:
         dict
         """
         names = ("n_poles", "n_zeros", "delay", "kind", "intersample", "initial_state", "offset",
-                 "validate_from", "max_order", "max_iter", "tol", "n_restarts", "random_state")
+                 "validate_from", "max_order", "max_iter", "tol", "integrator", "n_restarts",
+                 "random_state")
         return {k: getattr(self, k) for k in names}
 
     def set_params(self, **params: Any) -> TransferFunctionEstimator:
@@ -242,6 +257,8 @@ class TransferFunctionEstimator:
             raise DataError(f"max_iter must be an integer >= 1; got {self.max_iter!r}")
         if not (np.isfinite(self.tol) and self.tol > 0):
             raise DataError(f"tol must be > 0; got {self.tol!r}")
+        if self.integrator not in (None, True, False):
+            raise DataError(f"integrator must be True, False or None; got {self.integrator!r}")
 
     def _split(self, records: list[Record]) -> tuple[list[Record], list[int]]:
         """Estimation parts of the records (``t < validate_from``) and their indices."""
@@ -315,7 +332,10 @@ class TransferFunctionEstimator:
                                 f"n_poles = {n}")
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
-                chosen = fit_order(self, recs, est, n, m)
+                if self.integrator:
+                    chosen = fit_integrating(self, recs, est, n, m)
+                else:
+                    chosen = fit_order(self, recs, est, n, m)
         for w in caught:  # only the chosen order's warnings matter
             warnings.warn(w.message, w.category, stacklevel=2)
         self.model_ = chosen
@@ -337,6 +357,7 @@ class TransferFunctionEstimator:
         The model is simulated over each whole record; the record's offset (and
         initial state, where estimated) is fitted to its samples before
         ``validate_from`` when there are enough of them, else to all samples.
+        An integrating model acts on ``u - model_.input_level``.
 
         Parameters
         ----------
@@ -350,6 +371,8 @@ class TransferFunctionEstimator:
         self._check_fitted()
         recs = self._records(records)
         model = self.model_
+        if model.input_level is not None:  # an integrating model acts from its input level
+            recs = [dataclasses.replace(r, u_before=float(model.input_level)) for r in recs]
         prob = _Problem(recs, model.n_poles, model.n_zeros, intersample=model.intersample,
                         offset=bool(self.offset), initial_state=self.initial_state)
         b = model.num[::-1].copy()

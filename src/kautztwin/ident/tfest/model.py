@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -65,6 +66,13 @@ class TransferFunctionModel:
         Whether the refinement met its tolerance.
     message : str, default=''
         The solver's message.
+    input_level : float, optional
+        For an integrating model (a pole at :math:`s = 0`, chosen by the
+        structure search): the input level the model acts from, the level at
+        which the integrator balances (the mean estimation input).  The model's
+        input is ``u - input_level``; :meth:`TransferFunctionEstimator.predict`
+        uses it in place of each record's ``u_before``.  ``None`` for the usual
+        models, which act from each record's ``u_before``.
 
     Attributes
     ----------
@@ -103,6 +111,7 @@ class TransferFunctionModel:
     order_selection: tuple[dict[str, Any], ...] = ()
     success: bool = True
     message: str = ""
+    input_level: float | None = None
 
     def __post_init__(self) -> None:
         num = np.atleast_1d(np.asarray(self.num, dtype=float))
@@ -157,8 +166,15 @@ class TransferFunctionModel:
         return np.roots(nz).astype(complex) if nz.size > 1 else np.zeros(0, dtype=complex)
 
     @property
+    def integrating(self) -> bool:
+        """Whether the model has a pole at :math:`s = 0` (``den(0) = 0``)."""
+        return bool(self.den[-1] == 0.0)
+
+    @property
     def gain(self) -> float:
-        """Static (DC) gain ``num(0) / den(0)``."""
+        """Static (DC) gain ``num(0) / den(0)`` (signed infinity for an integrating model)."""
+        if self.integrating:
+            return math.copysign(math.inf, float(self.num[-1])) if self.num[-1] else math.nan
         return float(self.num[-1] / self.den[-1])
 
     @property
@@ -171,7 +187,7 @@ class TransferFunctionModel:
     @property
     def gain_std(self) -> float:
         """One-sigma uncertainty of :attr:`gain` (first-order propagation of ``covariance``)."""
-        if self.covariance is None:
+        if self.covariance is None or self.integrating:
             return float("nan")
         grad = np.zeros(len(self.parameter_names))
         grad[self.n_zeros] = 1.0 / self.den[-1]  # d gain / d num[-1]
@@ -296,6 +312,8 @@ class TransferFunctionModel:
             out["validation_fit_percent"] = self.validation_fit_percent
             per = self.validation_fit_percent_per_record
             out["validation_fit_percent_per_record"] = [] if per is None else per.tolist()
+        if self.input_level is not None:
+            out["input_level"] = self.input_level
         out.update(
             aic=self.aic,
             noise_variance=self.noise_variance,

@@ -117,8 +117,17 @@ def _record_fit(y: NDArray, yh: NDArray, w: NDArray) -> float:
 
 
 # =========================================================================== the problem
+def _trend(tf: object) -> bool:
+    """Whether ``tf`` fits a linear trend per record (the search for an integrating model)."""
+    return bool(getattr(tf, "_trend", False))
+
+
 class _Problem:
-    """Output-error problem for a fixed order: regressors, projection, model output."""
+    """Output-error problem for a fixed order: regressors, projection, model output.
+
+    Nuisance columns per record: the offset, the free responses of the
+    initial state (when free) and, with ``trend``, a linear trend.
+    """
 
     def __init__(
         self,
@@ -129,8 +138,10 @@ class _Problem:
         intersample: str,
         offset: bool,
         initial_state: str,
+        trend: bool = False,
     ) -> None:
         self.records = records
+        self.trend = trend
         self.n = n_poles
         self.m = n_zeros
         self.intersample = intersample
@@ -172,6 +183,8 @@ class _Problem:
             nuis.append(np.ones((rec.t.size, 1)))
         if free:
             nuis.append(X[:, 0, 1:])
+        if self.trend:  # the integrated input's level error (see structure._integrated)
+            nuis.append(((rec.t - rec.t[0]) / max(rec.duration, 1e-300))[:, None])
         N = np.hstack(nuis) if nuis else np.zeros((rec.t.size, 0))
         return R, N
 

@@ -12,7 +12,7 @@ from numpy.typing import NDArray
 from ...exceptions import ConvergenceWarning, DataError
 from ..records import Record
 from .model import TransferFunctionModel
-from .problem import _den_from_theta, _Problem, _theta_bounds, _theta_from_poles
+from .problem import _den_from_theta, _Problem, _theta_bounds, _theta_from_poles, _trend
 from .starts import _obf_starts
 from .statistics import finalize
 
@@ -63,7 +63,7 @@ def refine_order(tf: TransferFunctionEstimator, est: list[Record], n: int, m: in
     replaces the slowest allowed pole rate ``0.01 / record length``.
     """
     prob = _Problem(est, n, m, intersample=tf.intersample, offset=bool(tf.offset),
-                    initial_state=tf.initial_state)
+                    initial_state=tf.initial_state, trend=_trend(tf))
     check_samples(tf, est, n, m)
     estimate_delay = tf.delay is True
     dt = float(min(np.median(np.diff(r.t)) for r in est))

@@ -18,9 +18,17 @@ The search, for orders :math:`n = 1 \dots n_\max` (the *bound*, :func:`search_bo
    of each estimation record of the model estimated on the first two thirds
    (initial states and slow modes cost what they cost out of sample); for
    several records that start at rest, each record held out in turn.
+   With the internal split a structure is represented by its *estimate*, the
+   candidate that fits the training rows best (:meth:`_Search.estimates`),
+   not by whichever start happens to score best on the held-out rows (which
+   would let those rows choose among local minima and favour orders with many
+   starts); an estimate that fits its training rows worse than a structure it
+   contains is an unconverged start and does not compete.  Screening then
+   stops after ``_PATIENCE`` orders without a better pick.
 3. **Refinement** (:func:`~.refine.refine_order`): brief output-error
    refinements of the best structures of the pick's order and its neighbours
-   (repeated while the pick moves), warm started from the lower orders; then
+   (with the internal split: the pick's order and the one below; repeated
+   while the pick moves), warm started from the lower orders; then
    the pick to convergence, also from VARPRO poles of the high-order ARX
    model's impulse response.  Refined models join the candidates.
 4. **Choice** (:meth:`_Search.pick`): the best criterion minus a small
@@ -28,6 +36,11 @@ The search, for orders :math:`n = 1 \dots n_\max` (the *bound*, :func:`search_bo
    lower order (never one that validates worse on the data it was chosen on).
    With the internal split the chosen structure is then estimated on the whole
    records.  A pick at the bound warns.
+5. **Integrator** (:func:`search_structure`, :mod:`.integrator`): when the
+   high-order ARX model has a mode slower than the records (an integrating
+   plant), steps 1-4 run again for ``G(s)/s``, ``G`` on the integrated input
+   with a trend per record for the unknown input level; the integrating model
+   is returned if its criterion is better by the per-pole margin.
 
 Size: over 600 lines because screening, scoring and refinement share the
 candidate bookkeeping of one search; the parts are separate classes
@@ -52,6 +65,14 @@ from numpy.typing import NDArray
 from ...exceptions import ConvergenceWarning, DataError, KautzTwinError
 from ..arx import _regressors
 from ..records import MIN_SAMPLES, Record
+from .integrator import (
+    check_integrable,
+    inner_estimator,
+    input_level,
+    integrated,
+    integrating_model,
+    mean_level,
+)
 from .model import TransferFunctionModel
 from .problem import (
     _den_from_theta,
@@ -59,6 +80,7 @@ from .problem import (
     _Problem,
     _theta_bounds,
     _theta_from_poles,
+    _trend,
     _weighted_lstsq,
 )
 from .refine import check_samples, refine_order
@@ -83,6 +105,11 @@ _QUICK_ITER, _ROUNDS = 6, 6
 _NEAR = 2.0
 #: without a validation part, the structure is chosen on the last third of each record
 _INNER = 2.0 / 3.0
+#: with the internal split, an estimate that fits its training rows this many points worse
+#: than a structure it contains is an unconverged start and does not compete
+_NESTED = 0.1
+#: with the internal split, screening stops after this many orders without a better pick
+_PATIENCE = 2
 #: samples of the impulse response given to VARPRO
 _VARPRO_SAMPLES = 120
 
@@ -232,20 +259,26 @@ def _shift(segs: list[tuple[NDArray, NDArray]], nk: int) -> list[tuple[NDArray, 
 
 
 def _reduced_denominators(segs: list[tuple[NDArray, NDArray]], nk: int, n_high: int,
-                          n_max: int
-                          ) -> tuple[dict[int, NDArray], tuple[NDArray, NDArray] | None]:
+                          n_max: int, slow: float = 0.0
+                          ) -> tuple[dict[int, NDArray], tuple[NDArray, NDArray] | None, bool]:
     """Discrete denominators of orders ``1..n_max``: balanced truncations of a high-order ARX.
 
     ARX(``n_high``, ``n_high``) on the input delayed by ``nk - 1`` samples, made
     stable, balanced and truncated (the idea of Zhu's ASYM method).  Also
-    returns the high-order model ``(a, b)``.
+    returns the high-order model ``(a, b)`` and whether, before it was made
+    stable, it had a positive real pole at or beyond ``exp(-slow)`` (a mode no
+    slower than ``slow`` per sample may be resolved; this one is an integrator
+    or slower than the records).
     """
     a, b, _ = _arx(_shift(segs, nk), n_high, n_high, 1, n_high)
+    z = np.roots(a)
+    real = z[(np.abs(z.imag) <= 1e-9 * np.maximum(np.abs(z), 1e-300)) & (z.real > 0)].real
+    has_slow = bool(real.size and np.max(real) >= math.exp(-slow))
     a = _stable(a)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # tf2ss' BadCoefficients on leading zeros
         A, B, C, _ = scipy.signal.tf2ss(np.concatenate([[0.0], b]), a)
-    return _balanced_denominators(A, B, C, n_max), (a, b)
+    return _balanced_denominators(A, B, C, n_max), (a, b), has_slow
 
 
 def _continuous(a: NDArray, dt: float, rate_lo: float, rate_hi: float) -> NDArray[np.complex128]:
@@ -340,7 +373,8 @@ class _Scorer:
                ) -> dict[int, tuple[float, float, float]]:
         n = den.size - 1
         prob = _Problem(self.records, n, n - 1, intersample=self.tf.intersample,
-                        offset=bool(self.tf.offset), initial_state=self.tf.initial_state)
+                        offset=bool(self.tf.offset), initial_state=self.tf.initial_state,
+                        trend=_trend(self.tf))
         cols = prob.all_columns(den, tau)
         self.n_eval += 1
         unresolved = self.slowest is not None and np.min(-np.roots(den).real) < self.slowest
@@ -392,8 +426,9 @@ class _Search:
     """Screening, scoring and refinement of candidate structures on one estimation set."""
 
     def __init__(self, tf: TransferFunctionEstimator, fit_recs: list[Record], scorer: _Scorer,
-                 bound: int) -> None:
+                 bound: int, *, honest: bool = False) -> None:
         self.tf = tf
+        self.honest = honest
         self.fit_recs = fit_recs
         self.scorer = scorer
         self.dt = float(min(np.median(np.diff(r.t)) for r in fit_recs))
@@ -423,6 +458,8 @@ class _Search:
         self.high: tuple[NDArray, NDArray] | None = None
         self.starts: dict[int, list[tuple[str, NDArray]]] = {}
         self.slow_rate = 2.0 / span
+        self.screened_to = self.bound
+        self.slow_mode = False
 
     def zeros_for(self, n: int) -> list[int]:
         ms = ([min(int(self.tf.n_zeros), n - 1)] if self.tf.n_zeros is not None
@@ -445,7 +482,8 @@ class _Search:
         if n not in self._probs:
             self._probs[n] = _Problem(self.fit_recs, n, n - 1, intersample=self.tf.intersample,
                                       offset=bool(self.tf.offset),
-                                      initial_state=self.tf.initial_state)
+                                      initial_state=self.tf.initial_state,
+                                      trend=_trend(self.tf))
         try:
             with np.errstate(all="ignore"):
                 r = self._probs[n].residual(np.real(np.poly(p)), tau)
@@ -454,7 +492,7 @@ class _Search:
         cost = float(r @ r)
         return cost if math.isfinite(cost) else math.inf
 
-    def screen(self) -> None:
+    def screen(self, per_pole: float = 0.0) -> None:
         """Candidates of every order: reduced high-order ARX poles and lower-order warm starts.
 
         The starts of order ``n`` (logged in ``self.starts[n]`` with their origin):
@@ -463,9 +501,24 @@ class _Search:
         order ``n - 2`` plus one pair (both from the truncation), and the best
         poles of order ``n - 1`` plus one slow pole (``2 / record length``) when
         they have none.  Each start costs one variable-projection evaluation.
+
+        With ``self.honest`` the screening stops once ``_PATIENCE`` orders in a
+        row have not raised the best ``criterion - per_pole * n`` of the
+        estimates (:meth:`estimates`).
         """
-        dens, self.high = _reduced_denominators(self.segs, self.nk, self.n_high, self.bound)
+        n_uniform = sum(u.size for u, _ in self.segs)
+        dens, self.high, self.slow_mode = _reduced_denominators(
+            self.segs, self.nk, self.n_high, self.bound, slow=1.0 / max(n_uniform, 1))
+        best, since = -math.inf, 0
         for n in range(1, self.bound + 1):
+            if getattr(self, "honest", False) and n > 1:
+                score = max((c.criterion - per_pole * c.n for c in self.estimates()),
+                            default=-math.inf)
+                since = 0 if score > best else since + 1
+                best = max(best, score)
+                if since >= _PATIENCE:
+                    self.screened_to = n - 1
+                    break
             labelled: list[tuple[str, NDArray]] = []
             if n in dens:
                 labelled.append(("reduced high-order ARX",
@@ -599,19 +652,68 @@ class _Search:
         assert out is not None
         return out
 
+    def estimates(self) -> list[_Candidate]:
+        """The estimate of every structure: its candidate of least training RSS, if credible.
+
+        Used with the internal split (``self.honest``), where the criterion is
+        a fit on held-out rows of the estimation records: a structure is judged
+        by the model its training rows give (the start that fits them best),
+        never by the start that happens to score best on the held-out rows
+        (choosing among starts there would fit the held-out rows too).  An
+        estimate that fits its training rows worse than a structure it
+        contains (fewer or equal poles and zeros) by more than ``_NESTED``
+        points is an unconverged start, not evidence for its structure, and is
+        left out.
+        """
+        rep: dict[tuple[int, int], _Candidate] = {}
+        for c in sorted(self.cands, key=lambda c: (c.n, c.m, not c.refined)):
+            k = (c.n, c.m)
+            if k not in rep or c.rss < rep[k].rss * (1.0 - 1e-12):
+                rep[k] = c
+        out = []
+        for (n, m), c in rep.items():
+            nested = [r.fit for (k, j), r in rep.items()
+                      if k <= n and j <= m and (k, j) != (n, m) and math.isfinite(r.fit)]
+            if not math.isfinite(c.fit) or (nested and c.fit < max(nested) - _NESTED):
+                continue
+            out.append(c)
+        return out
+
     def pick(self, per_pole: float) -> _Candidate:
         """Best ``criterion - per_pole * n`` (ties: fewer poles and zeros, refined first).
 
         A higher order therefore wins only with a criterion above every
-        lower-order candidate's (by ``per_pole`` points per extra pole).
+        lower-order candidate's (by ``per_pole`` points per extra pole).  With
+        ``self.honest`` only :meth:`estimates` compete.
         """
+        pool = self.estimates() if getattr(self, "honest", False) else self.cands
+        if not pool:
+            pool = self.cands
         chosen = None
-        for c in sorted(self.cands, key=lambda c: (c.n, c.m, not c.refined)):
+        for c in sorted(pool, key=lambda c: (c.n, c.m, not c.refined)):
             if chosen is None or (c.criterion - per_pole * c.n
                                   > chosen.criterion - per_pole * chosen.n):
                 chosen = c
         assert chosen is not None
         return chosen
+
+    def per_order(self) -> dict[int, _Candidate]:
+        """The best-scoring candidate of every order (with ``self.honest``: of its estimates).
+
+        An order without a credible estimate (see :meth:`estimates`) is
+        represented by its candidate of least training RSS, which a refinement
+        may make credible.
+        """
+        per_n: dict[int, _Candidate] = {}
+        pool = self.estimates() if getattr(self, "honest", False) else self.cands
+        for c in pool:
+            if c.n not in per_n or c.criterion > per_n[c.n].criterion:
+                per_n[c.n] = c
+        for c in self.cands:
+            if c.n not in per_n or (c.n not in {e.n for e in pool}
+                                    and c.rss < per_n[c.n].rss):
+                per_n[c.n] = c
+        return per_n
 
     def run(self, per_pole: float, *, polish: bool = True) -> _Candidate:
         """Screen every order; refine briefly about the pick until it settles; then fully.
@@ -625,13 +727,10 @@ class _Search:
         records instead); if a screened or briefly refined model still scores
         best it is returned as it is.
         """
-        self.screen()
+        self.screen(per_pole)
         if not self.cands:
             raise DataError("the structure search found no usable model for these records")
-        per_n: dict[int, _Candidate] = {}
-        for c in self.cands:
-            if c.n not in per_n or c.criterion > per_n[c.n].criterion:
-                per_n[c.n] = c
+        per_n = self.per_order()
         ranked = sorted(per_n.values(), key=lambda c: -c.criterion)
         low = min((c for c in ranked if c.criterion >= ranked[0].criterion - _NEAR),
                   key=lambda c: c.n)
@@ -639,7 +738,10 @@ class _Search:
         todo = {low.n}
         for _ in range(_ROUNDS):
             p = self.pick(per_pole).n
-            todo |= {k for k in (p - 1, p, p + 1) if k in per_n}
+            # honest: the pick and the order below (a higher order is not explored further:
+            # its held-out score is already discounted by the screening's order of estimates)
+            near = (p - 1, p) if self.honest else (p - 1, p, p + 1)
+            todo |= {k for k in near if k in per_n}
             todo -= done
             if not todo:
                 break
@@ -647,6 +749,8 @@ class _Search:
                 self.refine(per_n[n], max_iter=_QUICK_ITER)
             done |= todo
             todo = set()
+            if self.honest:  # a refined estimate may now represent its order
+                per_n = self.per_order()
         chosen = self.pick(per_pole)
         if polish and not chosen.refined:
             self.refine(chosen)
@@ -674,11 +778,74 @@ def _extra_poles(lower: NDArray, ref: NDArray, kind: str, rate_hi: float) -> NDA
 
 def search_structure(tf: TransferFunctionEstimator, recs: list[Record], est: list[Record]
                      ) -> tuple[TransferFunctionModel, list[Any]]:
-    """Choose and fit the order, zeros and delay; return the model and the chosen one's warnings.
+    """Choose and fit the structure; return the model and the chosen one's warnings.
 
-    See the module docstring for the method.  Sets ``tf.search_`` (bound,
-    criterion, candidates, timings) on the estimator.
+    The stable search (:func:`_search`, see the module docstring); then, with
+    ``integrator=None``, when its high-order ARX model shows a mode the
+    stable search cannot resolve (a positive real pole at or beyond
+    ``exp(-1 / n_samples)``: an integrator or a mode slower than the records)
+    and the records are held input/output records, the same search for
+    ``G(s)/s`` (:mod:`.integrator`); the integrating model is returned only
+    if its criterion beats the stable one's by the per-pole margin.  With
+    ``integrator=True`` only the integrating search runs, with ``False`` only
+    the stable one.  Sets ``tf.search_`` (bound, criterion, candidates,
+    timings, the integrator's trial) on the estimator.
     """
+    t_start = time.perf_counter()
+    mode = getattr(tf, "integrator", None)
+    info: dict[str, Any] = {"tried": False, "chosen": False}
+    model = caught = at_bound = None
+    crit = -math.inf
+    if mode is not True:
+        model, caught, crit, search, at_bound = _search(tf, recs, est)
+        if mode is False or _trend(tf):
+            info["reason"] = "integrator=False"
+        elif not search.slow_mode:
+            info["reason"] = "no mode slower than the records in the high-order ARX model"
+        elif check_integrable(tf, recs) is not None:
+            info["reason"] = check_integrable(tf, recs)
+    elif check_integrable(tf, recs) is not None:
+        raise DataError(str(check_integrable(tf, recs)))
+    if mode is True or (mode is None and "reason" not in info):
+        stable_search = getattr(tf, "search_", None)
+        mean = mean_level(est)
+        inner = inner_estimator(tf)
+        est_v = [integrated(r, mean) for r in est]
+        try:
+            m_v, caught_v, crit_v, _, at_bound_v = _search(
+                inner, [integrated(r, mean) for r in recs], est_v)
+        except (KautzTwinError, np.linalg.LinAlgError, ValueError) as exc:
+            if model is None:
+                raise
+            info.update(tried=True, reason=f"the integrating search failed: {exc}")
+        else:
+            tf.n_evaluations_ += inner.n_evaluations_
+            margin = float(inner.search_["points_per_pole"])
+            info.update(tried=True, criterion=crit_v, stable_criterion=crit)
+            if mode is True or crit_v > crit + margin:
+                level = input_level(inner, m_v, est_v, mean)
+                rows = tuple({**r, "n_poles": r["n_poles"] + 1, "integrator": True}
+                             for r in m_v.order_selection)
+                model = integrating_model(tf, recs, est, m_v, level, rows)
+                caught, at_bound = caught_v, at_bound_v
+                info.update(chosen=True, input_level=level)
+                tf.search_ = {**inner.search_, "chosen": {
+                    **inner.search_["chosen"], "n_poles": model.n_poles, "integrator": True}}
+                if stable_search is not None:
+                    info["stable_search"] = stable_search
+            else:
+                info["search"] = inner.search_
+    assert model is not None and caught is not None
+    tf.search_["integrator"] = info
+    tf.search_["search_s"] = time.perf_counter() - t_start
+    if at_bound is not None:
+        warnings.warn(at_bound, ConvergenceWarning, stacklevel=3)
+    return model, caught
+
+
+def _search(tf: TransferFunctionEstimator, recs: list[Record], est: list[Record]
+            ) -> tuple[TransferFunctionModel, list[Any], float, _Search, str | None]:
+    """The stable search: model, warnings, criterion of the pick, the search, bound warning."""
     t_start = time.perf_counter()
     bound, why = search_bound(tf, est)
     check_samples(tf, est, 1, 0)
@@ -710,20 +877,21 @@ def search_structure(tf: TransferFunctionEstimator, recs: list[Record], est: lis
         fit_recs, train, test = _inner_split(tf, est)
         scorer = _Scorer(tf, est, [(train, test)])
         scorer.per_sample_spread()
-        search = _Search(tf, fit_recs, scorer, bound)
+        search = _Search(tf, fit_recs, scorer, bound, honest=True)
         criterion = (f"fit on the last {1 - _INNER:.0%} of each estimation record, the model "
                      f"estimated on the first {_INNER:.0%}")
     scorer.slowest = 1.0 / float(max(r.duration for r in est))
     split = search.fit_recs is not est
     tol = _PARSIMONY if split else _NOISE
     chosen = search.run(tol, polish=not split)
+    crit = chosen.criterion
     if split:
         # the structure is chosen; its final estimate uses the whole estimation records
         chosen = search.refine(chosen, recs=est, warm=False)
     tf.n_evaluations_ += scorer.n_eval + sum(p.n_eval for p in search._probs.values())
     t_search = time.perf_counter() - t_start
     prob = _Problem(est, chosen.n, chosen.m, intersample=tf.intersample,
-                    offset=bool(tf.offset), initial_state=tf.initial_state)
+                    offset=bool(tf.offset), initial_state=tf.initial_state, trend=_trend(tf))
     den = chosen.den if chosen.den is not None else np.real(np.poly(chosen.poles))
     sol = chosen.sol if chosen.sol is not None else SimpleNamespace(
         success=True, message="screened model (reduced high-order ARX poles; numerator, "
@@ -733,8 +901,9 @@ def search_structure(tf: TransferFunctionEstimator, recs: list[Record], est: lis
     N_s = float(sum(np.sum(np.asarray(r.weights)[tr]) for r, tr in zip(
         scorer.records, train, strict=True)))
     rows = []
-    for n in sorted({c.n for c in search.cands}):
-        best_n = max((c for c in search.cands if c.n == n), key=lambda c: c.criterion)
+    per_n = search.per_order()
+    for n in sorted(per_n):
+        best_n = per_n[n]
         p = n_parameters(tf, search.fit_recs, n, best_n.m)
         aic = N_s * math.log(max(best_n.rss, 1e-300) / N_s) + 2 * p + N_s * (
             math.log(2 * math.pi) + 1)
@@ -746,13 +915,15 @@ def search_structure(tf: TransferFunctionEstimator, recs: list[Record], est: lis
     model = dataclasses.replace(model, order_selection=tuple(rows))
     tf.search_ = {
         "bound": search.bound, "bound_rule": why, "criterion": criterion,
+        "screened_to": search.screened_to,
         "points_per_pole": tol, "n_candidates": len(search.cands),
         "refined": [list(k) for k in sorted(search.refined)], "search_s": t_search,
         "chosen": {"n_poles": chosen.n, "n_zeros": chosen.m, "refined": chosen.refined},
     }
+    at_bound = None
     if chosen.n >= search.bound:
-        warnings.warn(
+        at_bound = (
             f"the chosen order {chosen.n} is the search bound ({why}; the data support "
             f"{search.bound}): a higher order may fit better; raise max_order if the records "
-            "can support it", ConvergenceWarning, stacklevel=3)
-    return model, chosen.caught
+            "can support it")
+    return model, chosen.caught, crit, search, at_bound
