@@ -26,10 +26,20 @@ them).  Data sets and protocols (``data/*/README.md``):
   simulated position.  References (README): the physical model's relative error 0.008 % on
   the test record; a linear transfer function (CAPTAIN/CONTSID) 74.6 % relative error.
 
+``--default`` instead measures ``kautztwin identify``'s default (no ``--model``): the linear
+structure search (``TransferFunctionEstimator('auto')``, as ``benchmarks/identification.py``
+runs it) and then :func:`kautztwin.ident.nonlinear.choice.choose_model_class` on the
+estimation samples, on the io data sets of ``benchmarks/identification.py`` (dryer, gas
+furnace, actuator, cascaded tanks; the TCLab step test is a step record, for which the default
+stays linear without a comparison).  It reports the class picked, its figure, the linear
+pick's figure and the time ratio (linear search + choice) / linear search, and stores them
+under ``default_choice`` in the JSON (the other entries are kept).
+
 Usage::
 
     python benchmarks/identification_nonlinear.py [--quick] [--datasets actuator,emps]
         [--out benchmarks/results/identification_nonlinear.json]
+    python benchmarks/identification_nonlinear.py --default
 
 ``--quick`` runs every case with short training (a smoke test; its figures mean nothing).
 Run with ``OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1`` on a shared machine.
@@ -169,6 +179,62 @@ DATASETS: dict[str, Callable[[], dict[str, Any]]] = {
 }
 
 
+# --------------------------------------------------------------------------- default
+def run_default(out_path: Path) -> int:
+    """The default's class choice on the io data sets of ``identification.py``."""
+    import json
+
+    import identification as lin_bench
+
+    from kautztwin.ident import Record, TransferFunctionEstimator
+    from kautztwin.ident.nonlinear.choice import choose_model_class
+
+    rows = []
+    for name in ("dryer", "gas_furnace", "actuator", "cascaded_tanks"):
+        ds = lin_bench.DATASETS[name]()
+        rec = Record.from_data(ds.t, ds.u, ds.y, kind="io", name=name)
+        vf = float(ds.t[ds.n_est]) if ds.case == "split" else None
+        t0 = time.perf_counter()
+        est = TransferFunctionEstimator("auto", delay=ds.tf["delay"], validate_from=vf)
+        est.fit(rec)
+        t_lin = time.perf_counter() - t0
+        m = est.model_
+        n = ds.n_est
+        t0 = time.perf_counter()
+        ch = choose_model_class(ds.u[:n], ds.y[:n], m.poles, dt=ds.dt, delay=m.delay)
+        t_choice = time.perf_counter() - t0
+        row: dict[str, Any] = {"name": name, "pick": ch.model_class, "reason": ch.reason,
+                               "linear_time_s": t_lin, "choice_time_s": t_choice,
+                               "time_ratio": (t_lin + t_choice) / t_lin,
+                               "stages": ch.stages,
+                               "candidates": [{k: v for k, v in r.items()}
+                                              for r in ch.candidates]}
+        if ds.case == "split":
+            row["figure"] = "validation_fit_percent"
+            row["linear"] = m.validation_fit_percent
+            nl = float(fit_percent(ds.y[n:], ch.nonlinear.simulate(ds.u)[n:]))
+        else:  # the cascaded tanks: a separate test record, RMS
+            _, uv, yv = ds.val  # type: ignore[misc]
+            row["figure"] = "test_rms"
+            free = est.predict(rec)[0] - m.simulate(rec.t, rec.u - rec.u_before)
+            row["linear"] = _rms(yv, free + m.simulate(rec.t, uv - rec.u_before))
+            nl = _rms(yv, ch.nonlinear.model.with_fitted_level(uv, yv, 5).simulate(uv))
+        row["nonlinear"] = nl
+        row["default"] = nl if ch.model_class == "nonlinear" else row["linear"]
+        rows.append(row)
+        print(f"{name:<16} pick {ch.model_class:<9} default {row['figure']} = "
+              f"{row['default']:.4g} (linear {row['linear']:.4g}, nonlinear {nl:.4g}); "
+              f"time {t_lin:.1f} + {t_choice:.1f} s, ratio {row['time_ratio']:.2f}", flush=True)
+        print(f"{'':<16} {ch.reason}", flush=True)
+    data = json.loads(out_path.read_text()) if out_path.exists() else {}
+    data["default_choice"] = {"machine": machine_info(), "datasets": rows,
+                              "note": "tclab (a step record) stays linear without a "
+                              "comparison: time ratio 1"}
+    write_json(out_path, data)
+    print(f"wrote {out_path}")
+    return 0
+
+
 # --------------------------------------------------------------------------- run
 def run_case(ds: dict[str, Any], structure: str, n_poles: Any, quick: bool) -> dict[str, Any]:
     kwargs: dict[str, Any] = {"model": structure, "n_poles": n_poles, "dt": ds["dt"]}
@@ -200,10 +266,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--datasets", default=",".join(DATASETS))
     ap.add_argument("--out", default=str(OUT))
+    ap.add_argument("--default", action="store_true",
+                    help="measure the default's linear/nonlinear choice instead")
     args = ap.parse_args(argv)
     import torch
 
     torch.set_num_threads(1)
+    if args.default:
+        return run_default(Path(args.out))
     machine = machine_info()
     names = [n.strip() for n in args.datasets.split(",") if n.strip()]
     unknown = sorted(set(names) - set(DATASETS))

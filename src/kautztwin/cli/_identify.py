@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import os
 import sys
@@ -11,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from ._common import CLIError, check_output, format_pole, print_json
+from ._common import CLIError, _jsonable, check_output, format_pole, print_json
 
 __all__ = ["register", "run"]
 
@@ -30,6 +31,15 @@ optimised poles, reduced to the requested order, and refined by output-error
 least squares on the exactly simulated output (zero- or first-order hold
 between samples); poles stay stable.  Repeated time stamps (a step logged
 twice at t = 0), jittered or missing samples and offsets are handled.
+
+Linear or nonlinear: without --model, one input/output record and no linear
+structure given (--order auto, no --zeros, --delay, --fixed-delay or --report),
+the transfer function is then compared with nonlinear Kautz models on held-out
+blocks of the estimation samples; a nonlinear model is kept only if it fits
+them better by more than one standard error (a brief screen costs seconds; the
+full nonlinear fit, minutes, runs only when the screen finds the data
+nonlinear).  The output says which class was chosen and why.  --model linear
+fits the transfer function only.
 """
 
 EPILOG = """\
@@ -45,7 +55,8 @@ examples:
   kautztwin identify data/daisy_hair_dryer/dryer.dat --dt 0.08 --input 1 --output 2 \\
       --order 3 --delay --validate-from 40 --report dryer-report
 
-Files without a header row (DaISy .dat) take 1-based column numbers.
+Files without a header row (DaISy .dat) take 1-based column numbers; for one
+with two columns, --input and --output default to columns 1 and 2.
 """
 
 
@@ -72,10 +83,12 @@ def register(subparsers: argparse._SubParsersAction, common: argparse.ArgumentPa
                       help="time column in seconds (non-uniform and repeated stamps are fine)")
     data.add_argument("--dt", type=float, metavar="SECONDS",
                       help="sampling period for files without a time column (t = k * dt)")
-    data.add_argument("--input", required=True, metavar="COLUMN",
-                      help="input column (several, comma-separated, fit a MIMO Kautz model)")
-    data.add_argument("--output", required=True, metavar="COLUMN",
-                      help="output column (several, comma-separated, fit a MIMO Kautz model)")
+    data.add_argument("--input", metavar="COLUMN",
+                      help="input column (several, comma-separated, fit a MIMO Kautz model); "
+                      "required unless the file has no header row and two columns (then 1)")
+    data.add_argument("--output", metavar="COLUMN",
+                      help="output column (several, comma-separated, fit a MIMO Kautz model); "
+                      "required unless the file has no header row and two columns (then 2)")
     data.add_argument("--record", metavar="COLUMN",
                       help="column whose (numeric) value names the record of each row")
     data.add_argument(
@@ -95,14 +108,18 @@ def register(subparsers: argparse._SubParsersAction, common: argparse.ArgumentPa
                        help="largest order tried by --order auto (default: what the data "
                        "support: 10, more with records over 1000 samples, at most 20)")
     model.add_argument(
-        "--model", default="linear",
+        "--model", default=None,
         choices=("linear", "wiener", "hammerstein", "wiener-hammerstein", "volterra", "auto"),
-        help="linear: a transfer function (default); the others fit a nonlinear Kautz model "
-        "to one io record (auto: the structure and, with --order auto, 2 or 4 poles chosen by "
-        "block cross-validation)",
+        help="not given (default): the transfer function, or a nonlinear Kautz model where "
+        "it fits held-out blocks of the estimation samples clearly better (one io record, no "
+        "linear structure given; see above); linear: the transfer function only; the others "
+        "fit that nonlinear Kautz model to one io record (auto: the structure and, with "
+        "--order auto, 2 or 4 poles chosen by block cross-validation)",
     )
     model.add_argument("--save-model", metavar="FILE",
-                       help="with a nonlinear --model: write the fitted model as JSON")
+                       help="write the chosen model as JSON: a nonlinear Kautz model "
+                       "(load_nonlinear_model reads it) or the transfer function (the --json "
+                       "object, which kautztwin export reads)")
     model.add_argument("--delay", action="store_true", help="estimate an input delay")
     model.add_argument("--fixed-delay", type=float, metavar="SECONDS",
                        help="use this input delay instead of estimating it")
@@ -190,18 +207,25 @@ def run(args: argparse.Namespace) -> int:
     from ..ident import TransferFunctionEstimator, load_records
 
     order = _check_flags(args)
+    _default_columns(args)
     if "," in args.input or "," in args.output:
-        if args.model != "linear":
+        if args.model not in (None, "linear"):
             raise CLIError(f"--model {args.model} fits one input and one output; several "
                            "--input/--output columns fit a linear MIMO model (drop --model)")
         from ._identify_mimo import run_mimo
 
+        args.model = "linear"  # the default is the linear MIMO model
         return run_mimo(args, order)
-    if args.model != "linear":
+    if args.model not in (None, "linear"):
         from ._identify_nonlinear import run_nonlinear
 
         return run_nonlinear(args, order)
     plot = check_output(args.plot, "--plot") if args.plot else None
+    save = None
+    if args.save_model:
+        from ._identify_nonlinear import check_model_file
+
+        save = check_model_file(args.save_model)
     report = _check_report_dir(args.report) if args.report else None
     records = load_records(args.data, input=args.input, output=args.output, time=args.time,
                            dt=args.dt, record=args.record, kind=args.kind)
@@ -218,6 +242,13 @@ def run(args: argparse.Namespace) -> int:
     )
     est.fit(records)
     model = est.model_
+    choice = None
+    if args.model is None and _class_choice_applies(args, order, records):
+        from ._identify_nonlinear import choose_class
+
+        choice = choose_class(args, est, records[0])
+        if choice is not None and choice["model_class"] == "nonlinear":
+            return choice["emit"](plot, save)
     summary = model.to_dict()
     summary["kind"] = args.kind
     summary["record_info"] = [
@@ -232,11 +263,65 @@ def run(args: argparse.Namespace) -> int:
         summary["plot"] = str(plot)
     if report is not None:
         summary["report"] = _report(est, records, report, args)
+    if choice is not None:
+        summary["model_class"] = choice["summary"]
+    if save is not None:
+        summary["model_file"] = str(save)
+        save.write_text(json.dumps(_jsonable(summary), indent=1, allow_nan=False) + "\n")
     if args.json:
         print_json(summary)
         return 0
     _print_table(summary, model, records)
     return 0
+
+
+def _class_choice_applies(args: argparse.Namespace, order: int | str,
+                          records: list[Any]) -> bool:
+    """Whether the default compares the transfer function with nonlinear models.
+
+    Only for one input/output record with no linear structure given: a single step or
+    impulse excites no nonlinearity, and ``--order N``, ``--zeros``, ``--delay``,
+    ``--fixed-delay`` and ``--report`` ask for a linear model.
+    """
+    return (order == "auto" and args.kind == "io" and len(records) == 1
+            and args.zeros is None and not args.delay and args.fixed_delay is None
+            and not args.report)
+
+
+def _default_columns(args: argparse.Namespace) -> None:
+    """``--input 1 --output 2`` for a header-less two-column file; else a clear error."""
+    if args.input is not None and args.output is not None:
+        return
+    missing = " and ".join(f for f, v in (("--input", args.input), ("--output", args.output))
+                           if v is None)
+    path = Path(args.data[0])
+    line = ""
+    try:
+        with path.open(encoding="utf-8-sig") as fh:
+            line = next((ln.strip() for ln in fh
+                         if ln.strip() and not ln.lstrip().startswith("#")), "")
+    except (OSError, UnicodeDecodeError):
+        pass  # load_records reports an unreadable file
+    fields = line.replace(",", " ").replace(";", " ").split()
+    try:
+        numeric = bool([float(f) for f in fields])
+    except ValueError:
+        numeric = False
+    if numeric and len(fields) == 2 and args.time is None and {args.input, args.output} <= {
+            None, "1", "2"}:
+        args.input = args.input or ("2" if args.output == "1" else "1")
+        args.output = args.output or ("2" if args.input == "1" else "1")
+        print(f"note: {path.name} has no header row and two columns: --input {args.input} "
+              f"--output {args.output}", file=sys.stderr)
+        return
+    if not fields:
+        what = "could not be read, or is empty"
+    elif not numeric:
+        what = "has a header row: give column names"
+    else:
+        what = f"has {len(fields)} columns: give 1-based column numbers"
+    raise CLIError(f"give {missing} ({path.name} {what}; only a header-less two-column file "
+                   "defaults to --input 1 --output 2)")
 
 
 def _check_report_dir(text: str) -> Path:
@@ -352,6 +437,11 @@ def _print_table(summary: dict[str, Any], model: Any, records: list[Any]) -> Non
             + ("" if p_in is None else f" (p = {p_in:.3g})"),
             f"wrote the report to {rep['directory']}",
         ]
-    if "plot" in summary:
-        lines.append(f"wrote {summary['plot']}")
+    if "model_class" in summary:
+        from ._identify_nonlinear import class_lines
+
+        lines += ["", *class_lines(summary["model_class"])]
+    for key in ("model_file", "plot"):
+        if key in summary:
+            lines.append(f"wrote {summary[key]}")
     sys.stdout.write("\n".join(lines) + "\n")

@@ -1,10 +1,14 @@
-"""``kautztwin identify --model wiener|hammerstein|wiener-hammerstein|volterra|auto``.
+"""``kautztwin identify --model wiener|...|auto``, and the default's linear/nonlinear choice.
 
 The nonlinear branch of ``kautztwin identify``: one input/output record, a nonlinear Kautz
 model chosen and fitted by :func:`kautztwin.ident.nonlinear.identify_nonlinear` (block
 cross-validation on the estimation samples), its free-run simulation scored on the
 estimation samples and, with ``--validate-from``, on the validation samples (the simulation
 runs over the whole record from the estimated initial state; no validation output is used).
+
+Without ``--model``, :func:`choose_class` asks
+:func:`kautztwin.ident.nonlinear.choice.choose_model_class` whether a nonlinear model beats
+the transfer function already fitted, on held-out blocks of the estimation samples.
 """
 
 from __future__ import annotations
@@ -18,7 +22,7 @@ import numpy as np
 
 from ._common import CLIError, check_output, format_pole, print_json
 
-__all__ = ["run_nonlinear"]
+__all__ = ["check_model_file", "choose_class", "run_nonlinear"]
 
 
 def run_nonlinear(args: argparse.Namespace, order: int | str) -> int:
@@ -38,7 +42,6 @@ def run_nonlinear(args: argparse.Namespace, order: int | str) -> int:
     """
     from ..ident import load_records
     from ..ident.nonlinear import identify_nonlinear
-    from ..metrics import fit_percent
 
     if args.kind != "io":
         raise CLIError(f"--model {args.model} needs an input/output record (--kind io), "
@@ -49,12 +52,20 @@ def run_nonlinear(args: argparse.Namespace, order: int | str) -> int:
             raise CLIError(f"{flag} applies to linear transfer functions, not to --model "
                            f"{args.model}")
     plot = check_output(args.plot, "--plot") if args.plot else None
-    save = _check_model_file(args.save_model) if args.save_model else None
+    save = check_model_file(args.save_model) if args.save_model else None
     records = load_records(args.data, input=args.input, output=args.output, time=args.time,
                            dt=args.dt, record=args.record, kind="io")
     if len(records) != 1:
         raise CLIError(f"--model {args.model} fits one record; got {len(records)}")
     rec = records[0]
+    n_est, dt = _split(rec, args)
+    fit = identify_nonlinear(rec.u[:n_est], rec.y[:n_est], model=args.model,
+                             n_poles="auto" if order == "auto" else order, dt=dt)
+    return _emit(fit, rec, n_est, args, plot, save, args.model)
+
+
+def _split(rec: Any, args: argparse.Namespace) -> tuple[int, float]:
+    """Number of estimation samples (before ``--validate-from``) and the sampling period."""
     n_est = rec.n_samples
     if args.validate_from is not None:
         n_est = int(np.sum(rec.t < args.validate_from))
@@ -62,11 +73,74 @@ def run_nonlinear(args: argparse.Namespace, order: int | str) -> int:
             raise CLIError(f"--validate-from {args.validate_from:g} leaves no validation "
                            "samples (fewer than two at or after it)")
     dt = float(np.median(np.diff(rec.t))) if rec.n_samples > 1 else 1.0
-    fit = identify_nonlinear(rec.u[:n_est], rec.y[:n_est], model=args.model,
-                             n_poles="auto" if order == "auto" else order, dt=dt)
+    return n_est, dt
+
+
+def choose_class(args: argparse.Namespace, est: Any, rec: Any) -> dict[str, Any] | None:
+    """The default's model class: the fitted transfer function or a nonlinear Kautz model.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        Parsed flags of ``identify``.
+    est : TransferFunctionEstimator
+        The fitted linear estimator (its poles and delay start the comparison).
+    rec : Record
+        The one input/output record.
+
+    Returns
+    -------
+    dict or None
+        ``model_class`` ('linear' or 'nonlinear'), ``summary`` (JSON-ready: the class, the
+        reason, the held-out fit of every candidate) and ``emit(plot, save)``, which prints
+        the nonlinear model's report; ``None`` when the estimation samples are too few to
+        compare (fewer than 60) or the comparison failed (a note on stderr says why).
+    """
+    from ..exceptions import KautzTwinError
+    from ..ident.nonlinear.choice import choose_model_class
+
+    n_est, dt = _split(rec, args)
+    if n_est < 60 or float(np.std(rec.u[:n_est])) == 0.0:
+        return None
+    lin = est.model_
+    try:
+        choice = choose_model_class(rec.u[:n_est], rec.y[:n_est], lin.poles, dt=dt,
+                                    delay=lin.delay)
+    except (KautzTwinError, ImportError) as exc:  # the linear model stands; say why
+        print(f"note: kept the transfer function without comparing nonlinear models: {exc}",
+              file=sys.stderr)
+        return None
+    rows = [{k: r[k] for k in ("class", "structure", "map", "n_poles", "n_parameters",
+                               "stage", "cv_fit_percent", "seconds", "chosen")}
+            for r in choice.candidates]
+    summary = {"chosen": choice.model_class, "reason": choice.reason,
+               "held_out": "6 contiguous blocks of the estimation samples",
+               "candidates": rows, "stages": choice.stages, "seconds": choice.seconds}
+    out: dict[str, Any] = {"model_class": choice.model_class, "summary": summary}
+    if choice.model_class == "nonlinear":
+        linear = {"n_poles": lin.n_poles, "n_zeros": lin.n_zeros, "delay": lin.delay,
+                  "fit_percent": lin.fit_percent}
+        if lin.validation_fit_percent is not None:
+            linear["validation_fit_percent"] = lin.validation_fit_percent
+        summary["linear"] = linear
+        fit = choice.nonlinear
+        assert fit is not None
+
+        def emit(plot: Path | None, save: Path | None) -> int:
+            return _emit(fit, rec, n_est, args, plot, save, "default", summary)
+
+        out["emit"] = emit
+    return out
+
+
+def _emit(fit: Any, rec: Any, n_est: int, args: argparse.Namespace, plot: Path | None,
+          save: Path | None, asked: str, model_class: dict[str, Any] | None = None) -> int:
+    """Score, save, plot and print a nonlinear fit."""
+    from ..metrics import fit_percent
+
     yh = fit.simulate(rec.u)
     summary: dict[str, Any] = {
-        "model": args.model, "structure": fit.structure, "map": fit.map,
+        "model": asked, "structure": fit.structure, "map": fit.map,
         "n_poles": fit.n_poles, "n_members": len(fit.model.members),
         "poles": [[p.real, p.imag] for p in fit.model.members[0].poles],
         "cv_fit_percent": fit.cv_fit_percent,
@@ -75,6 +149,8 @@ def run_nonlinear(args: argparse.Namespace, order: int | str) -> int:
     }
     if n_est < rec.n_samples:
         summary["validation_fit_percent"] = float(fit_percent(rec.y[n_est:], yh[n_est:]))
+    if model_class is not None:
+        summary["model_class"] = model_class
     if save is not None:
         fit.model.save(save)
         summary["model_file"] = str(save)
@@ -88,8 +164,18 @@ def run_nonlinear(args: argparse.Namespace, order: int | str) -> int:
     return 0
 
 
-def _check_model_file(text: str) -> Path:
-    """Fail before the fit if the model file cannot be written."""
+def check_model_file(text: str) -> Path:
+    """Fail before the fit if the ``--save-model`` file cannot be written.
+
+    Parameters
+    ----------
+    text : str
+        The flag's value.
+
+    Returns
+    -------
+    Path
+    """
     out = Path(text)
     if out.is_dir():
         raise CLIError(f"--save-model {text}: is a directory; give a file name such as m.json")
@@ -136,7 +222,37 @@ def _print(summary: dict[str, Any], fit: Any) -> None:
     for c in summary["candidates"]:
         lines.append(f"{c['structure']:<20} {c['map']:<5} {c['n_poles']:>5}  "
                      f"{c['cv_fit_percent']:>9.3f}  {c['seconds']:>8.1f}")
+    if "model_class" in summary:
+        lines += ["", *class_lines(summary["model_class"])]
     for key in ("model_file", "plot"):
         if key in summary:
             lines.append(f"wrote {summary[key]}")
     sys.stdout.write("\n".join(lines) + "\n")
+
+
+def class_lines(mc: dict[str, Any]) -> list[str]:
+    """Text lines of the default's model-class choice (reason and held-out fits).
+
+    Parameters
+    ----------
+    mc : dict
+        ``choose_class(...)["summary"]``.
+
+    Returns
+    -------
+    list of str
+    """
+    lines = [f"model class  {mc['reason']}",
+             f"held-out fits ({mc['held_out']}, {mc['seconds']:.1f} s):",
+             "  class      stage    structure            map     poles   held-out fit %"]
+    for r in mc["candidates"]:
+        mark = "  <- chosen" if r["chosen"] else ""
+        lines.append(f"  {r['class']:<10} {r['stage']:<8} {r['structure']:<20} {r['map']:<7} "
+                     f"{r['n_poles']:>5}  {r['cv_fit_percent']:>14.3f}{mark}")
+    if "linear" in mc:
+        lin = mc["linear"]
+        v = lin.get("validation_fit_percent")
+        lines.append(f"  (transfer function: {lin['n_poles']} poles, {lin['n_zeros']} zeros, "
+                     f"fit {lin['fit_percent']:.2f} %"
+                     + ("" if v is None else f", validation {v:.2f} %") + ")")
+    return lines

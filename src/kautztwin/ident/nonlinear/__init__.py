@@ -7,11 +7,14 @@ variable projection (:mod:`.varpro`, numpy/scipy only); the MLP structures by gr
 descent through the filter recursion (:mod:`.training`, torch, imported only when used).
 :func:`identify_nonlinear` (:mod:`.selection`) chooses structure and order by block
 cross-validation and averages the fold models; the fitted models (:mod:`.model`) simulate
-with numpy alone and save to JSON.
+with numpy alone and save to JSON.  :func:`choose_model_class` (:mod:`.choice`) decides
+between a linear model already identified and these models on held-out data: the default of
+``kautztwin identify``.
 """
 
 from __future__ import annotations
 
+from .choice import ModelClassChoice, choose_model_class
 from .filters import filter_bank_states
 from .maps import MLPMap, PolynomialMap
 from .model import NonlinearKautzEnsemble, NonlinearKautzModel, load_nonlinear_model
@@ -20,11 +23,13 @@ from .training import TorchOptions
 
 __all__ = [
     "MLPMap",
+    "ModelClassChoice",
     "NonlinearFit",
     "NonlinearKautzEnsemble",
     "NonlinearKautzModel",
     "PolynomialMap",
     "TorchOptions",
+    "choose_model_class",
     "filter_bank_states",
     "identify_nonlinear",
     "load_nonlinear_model",

@@ -345,6 +345,39 @@ class NonlinearKautzEnsemble:
         """
         return np.mean([m.simulate(u, level) for m in self.members], axis=0)
 
+    def linearize(self, u0: float) -> OutputErrorFit:
+        r"""The linear Kautz model of small deviations of the average around ``u0``.
+
+        The average of the members' linearisations (:meth:`NonlinearKautzModel.linearize`)
+        is a linear model whose poles are all the members' poles; its impulse response is
+        expanded, exactly up to the truncation of the slowest pole's tail (below
+        :math:`10^{-13}`), on the delayed discrete Kautz basis of those poles (least squares
+        on the orthonormal basis sequences).  The offset is the members' mean steady output.
+
+        Parameters
+        ----------
+        u0 : float
+            Operating point (input units).
+
+        Returns
+        -------
+        OutputErrorFit
+            As :meth:`NonlinearKautzModel.linearize`, on ``sum(m.n_poles)`` poles.
+        """
+        fits = [m.linearize(u0) for m in self.members]
+        poles = np.concatenate([m.poles for m in self.members])
+        basis = KautzBasis(poles, dt=self.dt, delayed=True)
+        r = float(np.max(np.abs(poles)))
+        n = int(min(max(np.ceil(np.log(1e-13) / np.log(max(r, 1e-3))) + 2, 50), 200_000))
+        t = self.dt * np.arange(n)
+        h = np.mean([f.model.impulse(t) for f in fits], axis=0)
+        coef, *_ = np.linalg.lstsq(basis.evaluate(t).T, h, rcond=None)
+        offset = float(np.mean([f.offset for f in fits]))
+        return OutputErrorFit(model=KautzModel(basis, coef), offset=offset, input_offset=u0,
+                              fit_percent=float("nan"), n_evaluations=0, success=True,
+                              message=f"linearised average of {len(fits)} {self.structure} "
+                              f"models at u0 = {u0:g}")
+
     def with_fitted_level(
         self, u: ArrayLike, y: ArrayLike, n_samples: int = 5
     ) -> NonlinearKautzEnsemble:

@@ -110,9 +110,10 @@ def _fit_one(structure: str, map_kind: str, degree: int, n_poles: int, us: NDArr
     start = start_poles(us, ys, n_poles, train) if init is None else init
     kinds, raw0 = raw_from_poles(start)
     level0 = float(us[0])
-    if map_kind == "poly":
+    if map_kind in ("poly", "tanh"):
         res = fit_varpro(structure, degree, kinds, raw0, us, ys, train, val, level0=level0,
-                         stats=stats, dt=dt, max_iter=max_iter)
+                         stats=stats, dt=dt, max_iter=max_iter,
+                         n_centres=degree if map_kind == "tanh" else 0)
         return res.model, res.val_mse
     res = fit_torch(structure, kinds, raw0, us, ys, train, val, level0=level0, stats=stats,
                     dt=dt, seed=seed, options=options)
@@ -172,12 +173,14 @@ def identify_nonlinear(
     n_poles : int, list of int or 'auto', default='auto'
         Poles of the Kautz bank; a list (or ``'auto'``: ``[2, 4]``) is searched by
         cross-validation.
-    map : {'mlp', 'poly'}, default='mlp'
+    map : {'mlp', 'poly', 'tanh'}, default='mlp'
         Static map of Wiener / Hammerstein: a small MLP (trained in torch) or a polynomial of
-        ``degree`` (variable projection, no torch).  Volterra is always polynomial,
-        Wiener-Hammerstein always MLP.
+        ``degree`` (variable projection, no torch); ``'tanh'`` (Hammerstein only, variable
+        projection): ``degree`` fixed tanh functions of the input centred at its quantiles
+        drive the bank beside ``u``.  Volterra is always polynomial, Wiener-Hammerstein
+        always MLP.
     degree : int, default=2
-        Polynomial degree.
+        Polynomial degree (with ``map='tanh'``: the number of tanh functions).
     dt : float, default=1.0
         Sampling period (stored in the model).
     n_folds : int, default=6
@@ -230,7 +233,10 @@ def identify_nonlinear(
     if u.size != y.size:
         raise DimensionError(f"u and y must have one length, got {u.size} and {y.size} samples")
     model = check_choice(model, "model", MODELS)
-    map_kind = check_choice(map, "map", ("mlp", "poly"))
+    map_kind = check_choice(map, "map", ("mlp", "poly", "tanh"))
+    if map_kind == "tanh" and model not in ("hammerstein", "auto"):
+        raise DataError(f"map='tanh' is an input map: it needs model='hammerstein', "
+                        f"got {model!r}")
     degree = check_int(degree, "degree", 1)
     n_folds = check_int(n_folds, "n_folds", 1)
     n_seeds = check_int(n_seeds, "n_seeds", 1)
@@ -331,6 +337,8 @@ def _n_parameters(structure: str, map_kind: str, degree: int, n_poles: int,
     o = options or TorchOptions()
     if structure == "volterra":
         return n_poles + 1 + math.comb(n_poles + degree, degree)
+    if map_kind == "tanh":  # degree tanh channels beside u
+        return n_poles + 1 + 1 + (degree + 1) * n_poles
     if map_kind == "poly":
         if structure == "hammerstein":
             return n_poles + 1 + 1 + degree * n_poles

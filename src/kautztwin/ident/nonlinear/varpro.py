@@ -8,6 +8,10 @@ Three structures have output maps linear in their coefficients :math:`\beta` onc
   expanded in products of Kautz functions (refs 24-26 of the seed paper);
 * **Hammerstein (polynomial)**: the powers :math:`u, u^2, \dots, u^d` each drive the bank,
   :math:`\hat y = \beta_0 + \sum \beta_{ij} x_i[u^j]`;
+* **Hammerstein (tanh basis)**: fixed sigmoids :math:`\tanh(w (u - c_j))` centred at
+  quantiles of the training input drive the bank beside ``u``; unlike powers of ``u`` they
+  level off outside the inputs seen, so a held-out operating point is not extrapolated by a
+  polynomial (the map is an :class:`~.maps.MLPMap` with fixed first layer);
 * **Wiener (polynomial)**: :math:`\hat y = \sum_k a_k (c^T z)^k`, one direction ``c`` with its
   largest entry fixed to 1 (the scale lives in ``a``).
 
@@ -28,10 +32,32 @@ import scipy.optimize
 from numpy.typing import NDArray
 
 from .filters import filter_bank_states, poles_from_raw
-from .maps import PolynomialMap, monomial_exponents, monomials
+from .maps import MLPMap, PolynomialMap, monomial_exponents, monomials
 from .model import NonlinearKautzModel
 
-__all__ = ["LEVEL_PRIOR", "VarproResult", "fit_varpro", "level_bounds"]
+__all__ = ["LEVEL_PRIOR", "TANH_SLOPE", "VarproResult", "fit_varpro", "level_bounds",
+           "tanh_centres"]
+
+#: slope of the tanh basis functions, per standard deviation of the input
+TANH_SLOPE = 2.0
+
+
+def tanh_centres(us: NDArray, n_centres: int) -> NDArray[np.float64]:
+    """Centres of the tanh input basis: equally spaced quantiles of the (training) input.
+
+    Parameters
+    ----------
+    us : ndarray of shape (n_samples,)
+        Standardised input samples.
+    n_centres : int
+        Number of basis functions.
+
+    Returns
+    -------
+    ndarray of shape (n_centres,)
+        The ``j / (n_centres + 1)`` quantiles, ``j = 1 .. n_centres``.
+    """
+    return np.quantile(us, np.arange(1, n_centres + 1) / (n_centres + 1))
 
 #: weight of the residual ``level - level0`` that decides the level where the data do not
 LEVEL_PRIOR = 1e-3
@@ -63,12 +89,15 @@ class _Problem:
     """Residual of one structure for given nonlinear parameters (poles, level, direction)."""
 
     def __init__(self, structure: str, degree: int, kinds: tuple[str, ...], us: NDArray,
-                 ys: NDArray, train: NDArray, ridge: float) -> None:
+                 ys: NDArray, train: NDArray, ridge: float,
+                 centres: NDArray | None = None) -> None:
         self.structure, self.degree, self.kinds = structure, degree, kinds
+        self.centres = None if centres is None else np.asarray(centres, dtype=float)
         self.us, self.ys, self.train, self.ridge = us, ys, train, ridge
         self.n_raw = sum(1 if k == "real" else 2 for k in kinds)
         self.n_eval = 0
-        self.powers = (np.arange(2, degree + 1)[:, None] if structure == "hammerstein"
+        self.powers = (np.arange(2, degree + 1)[:, None]
+                       if structure == "hammerstein" and self.centres is None
                        else np.zeros((0, 1), dtype=int))
         self.level0 = 0.0
         self.x_mean: NDArray | None = None
@@ -76,6 +105,8 @@ class _Problem:
         self.pivot = 0
 
     def _channels(self, us: NDArray) -> NDArray:
+        if self.centres is not None:
+            return np.column_stack([us, np.tanh(TANH_SLOPE * (us[:, None] - self.centres))])
         if self.powers.size:
             return np.column_stack([us, monomials(us[:, None], self.powers)])
         return us[:, None]
@@ -136,6 +167,7 @@ def fit_varpro(
     structure: str, degree: int, kinds: tuple[str, ...], raw0: NDArray, us: NDArray,
     ys: NDArray, train: NDArray, val: NDArray, *, level0: float, stats: tuple[float, ...],
     dt: float, max_iter: int = 100, ridge: float = 1e-10, direction0: NDArray | None = None,
+    n_centres: int = 0,
 ) -> VarproResult:
     """Fit one linear-in-the-map structure by variable projection (internal).
 
@@ -159,12 +191,21 @@ def fit_varpro(
         Relative ridge of the coefficient solve.
     direction0 : ndarray, optional
         Starting Wiener direction (the unit vector of the largest state when omitted).
+    n_centres : int, default=0
+        Hammerstein only: ``n_centres > 0`` replaces the powers of the input by that many
+        tanh basis functions (:func:`tanh_centres` of the training input; ``degree`` is then
+        unused).
 
     Returns
     -------
     VarproResult
     """
-    prob = _Problem(structure, degree, kinds, us, ys, train, ridge)
+    centres = None
+    if n_centres > 0:
+        if structure != "hammerstein":
+            raise ValueError("the tanh basis is an input map: structure must be 'hammerstein'")
+        centres = tanh_centres(us[train], n_centres)
+    prob = _Problem(structure, degree, kinds, us, ys, train, ridge, centres)
     prob.level0 = level0
     lo, hi = level_bounds(us)
     p0 = np.concatenate([raw0, [float(np.clip(level0, lo, hi))]])
@@ -192,8 +233,12 @@ def fit_varpro(
     exps = prob.exponents(1 if structure == "wiener" else prob.x_mean.size)
     projection = prob.direction(p)[:, None] if structure == "wiener" else None
     out_map = PolynomialMap(exps, beta, prob.x_mean, prob.x_scale, projection)
-    in_map = None
-    if prob.powers.size:
+    in_map: PolynomialMap | MLPMap | None = None
+    if centres is not None:
+        m = centres.size
+        in_map = MLPMap(TANH_SLOPE * np.ones((m, 1)), -TANH_SLOPE * centres, np.eye(m),
+                        np.zeros(m), [0.0], [1.0])
+    elif prob.powers.size:
         m = prob.powers.shape[0]
         in_map = PolynomialMap(prob.powers, np.eye(m), [0.0], [1.0])
     model = NonlinearKautzModel(
