@@ -13,6 +13,7 @@ import json
 
 import numpy as np
 import pytest
+import scipy.signal
 
 from kautztwin.cli.main import main
 from kautztwin.ident.nonlinear import filter_bank_states, identify_nonlinear
@@ -192,6 +193,28 @@ def test_structure_flags_skip_the_class_choice(capsys, tmp_path):
     code, out, _ = run(capsys, "identify", path, "--dt", "1", "--input", "u", "--output", "y",
                        "--order", "1", "--json")
     assert code == 0 and "model_class" not in json.loads(out)
+
+
+def test_an_integrating_pick_is_kept_without_a_nonlinear_comparison(capsys, tmp_path):
+    """Nonlinear Kautz models have stable poles: on an integrating plant the default keeps
+    the integrating transfer function and says so, and the answer is --model linear's."""
+    rng = np.random.default_rng(3)
+    n, dt, level = 600, 0.1, 0.3
+    t = dt * np.arange(n)
+    u = level + np.repeat(rng.choice([-1.0, 1.0], n // 10 + 1), 10)[:n]
+    _, y, _ = scipy.signal.lsim(([2.0], [1.0, 1.0, 0.0]), u - level, t, interp=False)
+    y = 5.0 + y + 0.02 * np.std(y) * rng.standard_normal(n)
+    path = tmp_path / "int.dat"
+    np.savetxt(path, np.column_stack([u, y]))
+    code, out, err = run(capsys, "identify", path, "--dt", str(dt), "--validate-from", "45",
+                         "--json")
+    assert code == 0, err
+    assert "kept the integrating transfer function" in err
+    d = json.loads(out)
+    assert "model_class" not in d and d["den"][-1] == 0.0  # a pole at s = 0
+    code, lin, _ = run(capsys, "identify", path, "--dt", str(dt), "--validate-from", "45",
+                       "--json", "--model", "linear")
+    assert json.loads(lin) == d
 
 
 @pytest.mark.slow

@@ -94,7 +94,9 @@ def choose_class(args: argparse.Namespace, est: Any, rec: Any) -> dict[str, Any]
         ``model_class`` ('linear' or 'nonlinear'), ``summary`` (JSON-ready: the class, the
         reason, the held-out fit of every candidate) and ``emit(plot, save)``, which prints
         the nonlinear model's report; ``None`` when the estimation samples are too few to
-        compare (fewer than 60) or the comparison failed (a note on stderr says why).
+        compare (fewer than 60), the transfer function is integrating (a pole at
+        :math:`s = 0`, which the nonlinear Kautz models, stable by construction, cannot
+        hold), or the comparison failed (a note on stderr says why).
     """
     from ..exceptions import KautzTwinError
     from ..ident.nonlinear.choice import choose_model_class
@@ -103,6 +105,10 @@ def choose_class(args: argparse.Namespace, est: Any, rec: Any) -> dict[str, Any]
     if n_est < 60 or float(np.std(rec.u[:n_est])) == 0.0:
         return None
     lin = est.model_
+    if lin.integrating:
+        print("note: kept the integrating transfer function without comparing nonlinear "
+              "models (their poles are stable: they cannot integrate)", file=sys.stderr)
+        return None
     try:
         choice = choose_model_class(rec.u[:n_est], rec.y[:n_est], lin.poles, dt=dt,
                                     delay=lin.delay)
