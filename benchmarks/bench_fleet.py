@@ -16,6 +16,9 @@ Run::
     OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_fleet.py
 
 and it writes ``benchmarks/results/fleet.json``.  ``--quick`` measures fewer steps.
+``--ray N`` runs only the Ray check (N assets on 2 local workers against one process,
+merged into the JSON as ``ray_N``); ``--ray 2000 --kill`` is issue #15's acceptance check
+(one worker killed mid-run; about two CPU-hours).
 """
 
 from __future__ import annotations
@@ -193,8 +196,11 @@ def ray_check(n: int, duration: float, kill: bool = False) -> dict[str, Any]:
     samples differed from the stored ones, and whether every stored sample is
     there exactly once.
     """
+    import pickle
     import signal
     import sqlite3
+    import subprocess
+    import sys
 
     import ray
 
@@ -203,15 +209,13 @@ def ray_check(n: int, duration: float, kill: bool = False) -> dict[str, Any]:
 
     cfg = TwinConfig.for_plant("hydraulic", duration=duration, quick=True, static_twin=False,
                                retune=False)
-    t0 = time.perf_counter()
-    plant, assets = hydraulic_fleet(n, cfg, seed=7, drift_spread=0.3)
-    with Fleet(plant, cfg, workers=2) as fleet:
-        single = fleet.run(progress=False)
-    t_single = time.perf_counter() - t0
-    print(f"  single process: {t_single:.0f} s", flush=True)
-    out: dict[str, Any] = {"assets": n, "duration_s": duration, "single_process_wall_s": t_single}
-    t0 = time.perf_counter()
+    out: dict[str, Any] = {"assets": n, "duration_s": duration}
     with tempfile.TemporaryDirectory() as tmp:
+        # the single-process reference runs beside the shards, in a process of its own
+        ref = Path(tmp) / "single.pkl"
+        proc = subprocess.Popen([sys.executable, __file__, "--ray-single", str(n),
+                                 "--duration", str(duration), "--save", str(ref)])
+        t0 = time.perf_counter()
         try:
             actors = make_actors(n, cfg, n_shards=2, seed=7, drift_spread=0.3,
                                  store_dir=tmp if kill else None)
@@ -250,11 +254,17 @@ def ray_check(n: int, duration: float, kill: bool = False) -> dict[str, Any]:
                 r["rows"] == r["distinct"] == len(p["indices"]) * cfg.n_samples
                 for r, p in zip(rows.values(), sorted(parts, key=lambda p: int(p["indices"][0])),
                                 strict=True))
+        t_sharded = time.perf_counter() - t0
+        print(f"  sharded: {t_sharded:.0f} s", flush=True)
+        if proc.wait() != 0:
+            raise RuntimeError("the single-process reference run failed")
+        with open(ref, "rb") as fh:
+            single, assets, t_single = pickle.load(fh)
+    out["single_process_wall_s"] = t_single
     sharded = merge_runs(cfg, parts)
     assets_s: list[dict[str, float]] = []
     for p in sorted(parts, key=lambda p: int(p["indices"][0])):
         assets_s += p["assets"]
-    t_sharded = time.perf_counter() - t0
     s1, s2 = summarize(single, assets), summarize(sharded, assets_s)
     keys = ("sync_fit_last", "sync_fit_mean", "sync_fit_min", "desync_events",
             "reidentification", "mpc", "violations", "tracking_rms")
@@ -264,6 +274,22 @@ def ray_check(n: int, duration: float, kill: bool = False) -> dict[str, Any]:
     out.update({"ray_2_workers_wall_s": t_sharded, "metrics_equal": same,
                 "max_abs_difference": diff, "resume": dict(sharded.resume), "summary": s1})
     return out
+
+
+def single_reference(n: int, duration: float, path: str) -> None:
+    """The single-process run of :func:`ray_check` (pool of 2), pickled to ``path``."""
+    import pickle
+
+    cfg = TwinConfig.for_plant("hydraulic", duration=duration, quick=True, static_twin=False,
+                               retune=False)
+    t0 = time.perf_counter()
+    plant, assets = hydraulic_fleet(n, cfg, seed=7, drift_spread=0.3)
+    with Fleet(plant, cfg, workers=2) as fleet:
+        single = fleet.run(progress=False)
+    t_single = time.perf_counter() - t0
+    print(f"  single process: {t_single:.0f} s", flush=True)
+    with open(path, "wb") as fh:
+        pickle.dump((single, assets, t_single), fh)
 
 
 def rss_mib() -> float:
@@ -278,7 +304,13 @@ def main() -> None:
                     "(merged into the existing JSON)")
     ap.add_argument("--kill", action="store_true",
                     help="with --ray: kill one worker mid-run (it resumes from its store)")
+    ap.add_argument("--ray-single", type=int, default=0, help=argparse.SUPPRESS)
+    ap.add_argument("--duration", type=float, default=10.0, help=argparse.SUPPRESS)
+    ap.add_argument("--save", default="", help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.ray_single:
+        single_reference(args.ray_single, args.duration, args.save)
+        return
     if args.ray:
         old = json.loads(OUT.read_text()) if OUT.exists() else {}
         key = f"ray_{args.ray}" + ("_kill" if args.kill else "")
@@ -346,6 +378,9 @@ def main() -> None:
             print(f"  store N={n}: {r['store_rows_per_s']:.0f} rows/s, "
                   f"{100 * r['store_fraction_of_step_time']:.0f} % of the step time")
     OUT.parent.mkdir(parents=True, exist_ok=True)
+    if OUT.exists():  # the Ray checks (--ray N) are kept from earlier runs
+        old = json.loads(OUT.read_text())
+        results.update({k: v for k, v in old.items() if k.startswith("ray_")})
     OUT.write_text(json.dumps(results, indent=2, default=float))
     print(f"wrote {OUT}")
 

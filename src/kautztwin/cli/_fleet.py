@@ -1,4 +1,4 @@
-"""``kautztwin fleet run``: a simulated fleet of plants, all twins stepped together."""
+"""``kautztwin fleet run`` and ``fleet serve``: a simulated fleet's twins stepped together."""
 
 from __future__ import annotations
 
@@ -75,6 +75,9 @@ def register(subparsers: argparse._SubParsersAction, common: argparse.ArgumentPa
     r.add_argument("--ray-address", default=None, metavar="ADDR",
                    help="Ray cluster to join with --shards ('auto', 'HOST:6379'); a local "
                    "Ray instance when omitted")
+    r.add_argument("--estimator", metavar="DIR", default=None,
+                   help="a trained DNN estimator of step responses (kautztwin train): the due "
+                   "re-identifications use it, one call per sample (not with --shards)")
     r.add_argument("--no-record", action="store_true",
                    help="keep no per-sample arrays in memory (no output plot, less memory)")
     r.add_argument("--out", required=True, metavar="DIR", help="output folder")
@@ -82,6 +85,105 @@ def register(subparsers: argparse._SubParsersAction, common: argparse.ArgumentPa
                    help="progress bar on stderr (default: only on a terminal)")
     r.add_argument("--json", action="store_true", help="print the summary as JSON")
     r.set_defaults(run=run)
+    _register_serve(actions, common)
+
+
+SERVE_DESCRIPTION = """\
+Serve the twins of a simulated fleet (docs/fleet.md): the batched fleet is
+stepped on the wall clock, --speed plant seconds per wall-clock second, until
+SIGTERM/SIGINT, --wall-duration or the horizon (--duration plant seconds), and
+one HTTP API serves every asset: GET /assets, /assets/{id}/state,
+/assets/{id}/history, /fleet/metrics, POST /assets/{id}/setpoint
+(docs/api-http.md, Fleet).  The history is DIR/history.sqlite; a restart with
+the same options resumes the run.  A bind off 127.0.0.1 needs --token (or
+KAUTZTWIN_HTTP_TOKEN), which the writes then need as a bearer token.
+"""
+
+SERVE_EPILOG = """\
+examples:
+  kautztwin fleet serve --assets 20 --plant hydraulic --speed 1 --out runs/fleet \\
+      --http 127.0.0.1:8000
+  curl -s http://127.0.0.1:8000/assets/3/state
+"""
+
+
+def _register_serve(actions: argparse._SubParsersAction,
+                    common: argparse.ArgumentParser) -> None:
+    s = actions.add_parser(
+        "serve", parents=[common], allow_abbrev=False,
+        help="serve a simulated fleet's twins on the wall clock over one HTTP API",
+        description=SERVE_DESCRIPTION, epilog=SERVE_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter)
+    s.add_argument("--assets", required=True, type=int, metavar="N", help="number of assets")
+    s.add_argument("--plant", default="hydraulic", choices=("hydraulic",),
+                   help="plant type of the fleet (default: %(default)s)")
+    s.add_argument("--speed", type=float, default=1.0, metavar="S",
+                   help="plant seconds per wall-clock second (default: %(default)s)")
+    s.add_argument("--duration", type=float, default=None, metavar="S",
+                   help="horizon of the run, plant seconds (default: 600)")
+    s.add_argument("--wall-duration", type=float, default=None, metavar="S",
+                   help="stop after S wall-clock seconds (default: at the horizon or a signal)")
+    s.add_argument("--http", default=None, metavar="HOST:PORT",
+                   help="serve the HTTP API there (PORT alone: on 127.0.0.1)")
+    s.add_argument("--token", default=None,
+                   help="API token (bearer) the writes need; default: KAUTZTWIN_HTTP_TOKEN")
+    s.add_argument("--rate-limit", type=float, default=60.0, metavar="N",
+                   help="writes a minute per client, 0: no limit (default: %(default)s)")
+    s.add_argument("--spread", type=float, default=0.05,
+                   help="log-normal spread of the physical parameters (default: %(default)s)")
+    s.add_argument("--drift-spread", type=float, default=0.3, metavar="F",
+                   help="largest drift of an asset's dominant pole (default: %(default)s)")
+    s.add_argument("--noise", type=float, default=0.01,
+                   help="sensor noise, rad/s (default: %(default)s)")
+    s.add_argument("--seed", type=int, default=0, help="seed of the fleet (default: 0)")
+    s.add_argument("--workers", type=int, default=1,
+                   help="worker processes for identification and re-identification "
+                   "(default: %(default)s)")
+    s.add_argument("--estimator", metavar="DIR", default=None,
+                   help="a trained DNN estimator of step responses for the update module")
+    s.add_argument("--new", action="store_true",
+                   help="start a new run instead of resuming an unfinished one")
+    s.add_argument("--logging-format", choices=("kv", "json"), default="kv",
+                   help="log lines as key=value or JSON (default: %(default)s)")
+    s.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    s.set_defaults(run=serve)
+
+
+def serve(args: argparse.Namespace) -> int:
+    """Run ``kautztwin fleet serve``.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+
+    Returns
+    -------
+    int
+        0 after a clean stop (signal, ``--wall-duration`` or the horizon).
+    """
+    from ..service import configure_logging
+    from ..service.fleet_service import FleetService
+    from ._common import stop_on_signals
+
+    if args.assets <= 0:
+        raise CLIError(f"--assets must be a positive number of assets, got {args.assets}")
+    configure_logging("info", None, args.logging_format)
+    service = FleetService(
+        args.assets, args.out, plant=args.plant, speed=args.speed, duration=args.duration,
+        wall_duration=args.wall_duration, http=args.http, token=args.token,
+        rate_limit=args.rate_limit, seed=args.seed, spread=args.spread,
+        drift_spread=args.drift_spread, noise=args.noise, workers=args.workers,
+        resume=not args.new, estimator=_estimator(args.estimator))
+    with stop_on_signals(service.request_stop):
+        service.build()
+        s = service.run()
+    f = s.get("sync_fit_last", {})
+    sys.stdout.write(
+        f"fleet serve of {args.assets}: {s['n_samples']} samples, {s['reason']}; median last "
+        f"sync fit {f.get('median', float('nan')):.1f} %, re-identifications "
+        f"{s['reidentification']['accepted']}/{s['reidentification']['attempts']} accepted; "
+        f"store {s['store']}\n")
+    return 0
 
 
 def run(args: argparse.Namespace) -> int:
@@ -112,7 +214,10 @@ def run(args: argparse.Namespace) -> int:
                                static_twin=False, retune=False, seed=args.seed)
     record = not args.no_record
     if args.shards > 1 or args.ray_address:
+        if args.estimator:
+            raise CLIError("--estimator runs in one process: leave out --shards/--ray-address")
         return _run_sharded(args, cfg)
+    estimator = _estimator(args.estimator)
     plant, assets = hydraulic_fleet(args.assets, cfg, spread=args.spread,
                                     drift_spread=args.drift_spread, noise=args.noise,
                                     seed=args.seed, record=record)
@@ -122,7 +227,8 @@ def run(args: argparse.Namespace) -> int:
     if db.exists():
         db.unlink()
     store = FleetStore(str(db))
-    with Fleet(plant, cfg, store=store, workers=args.workers, record=record) as fleet:
+    with Fleet(plant, cfg, store=store, workers=args.workers, record=record,
+               estimator=estimator) as fleet:
         result = fleet.run(progress=args.progress)
         summary: dict[str, Any] = summarize(result, assets)
         summary["memory_bytes_per_asset_state"] = fleet.nbytes_per_asset
@@ -132,6 +238,15 @@ def run(args: argparse.Namespace) -> int:
                           "noise": args.noise, "seed": args.seed, "workers": args.workers}
     _write(args, out, summary, result if record else None)
     return 0
+
+
+def _estimator(path: str | None) -> Any:
+    """The estimator of ``--estimator DIR`` (``None`` without one)."""
+    if not path:
+        return None
+    from ..service import load_estimator
+
+    return load_estimator(path)
 
 
 def _run_sharded(args: argparse.Namespace, cfg: Any) -> int:

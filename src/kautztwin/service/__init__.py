@@ -16,11 +16,16 @@ same node ids alike.  :class:`MQTTPlantServer` serves the same plants over MQTT
 ``twin serve --http`` adds the twin's HTTP API and live dashboard
 (:mod:`~kautztwin.service.api`, FastAPI, imported only then) and
 :mod:`~kautztwin.service.client` is its Python client.
+
+:class:`FleetService` (``kautztwin fleet serve``) steps a batched fleet of twins on the
+wall clock and serves every asset over one HTTP API (:mod:`~kautztwin.service.fleet_api`,
+``/assets/{id}/...``).
 """
 
 from __future__ import annotations
 
 from .config import ServiceConfig, load_service_config
+from .fleet_service import FleetService
 from .mqtt_plant import MQTTPlantServer
 from .plant_server import (
     DEFAULT_ENDPOINT,
@@ -33,6 +38,7 @@ from .twin_service import TwinService, configure_logging, load_estimator
 __all__ = [
     "DEFAULT_ENDPOINT",
     "Channel",
+    "FleetService",
     "MQTTPlantServer",
     "PlantServer",
     "ServiceConfig",

@@ -35,10 +35,16 @@ before the loop starts, so that the full garbage collections the handlers'
 garbage triggers stay short (they walked ~10^5 objects, 0.1-0.2 s holding the
 lock, and made the loop late).  ``benchmarks/bench_api_load.py`` measures it.
 
+The pieces both this API and the fleet's (:mod:`.fleet_api`) use live here
+once: the one-line error answers (:func:`add_error_handlers`), the token rule
+(:func:`bearer_guard`), the ``/history`` query check and page
+(:func:`history_query`, :func:`history_response`) and the uvicorn thread
+(:class:`HttpThread`).
+
 Size: over 600 lines because every endpoint's request and response shape lives
-here with its docstring (the OpenAPI page is generated from them); the state
-the endpoints read and the jobs they hand to the sample loop are in
-:mod:`.twin_view`.
+here with its docstring (the OpenAPI page is generated from them), with the
+shared pieces above; the state the endpoints read and the jobs they hand to
+the sample loop are in :mod:`.twin_view`.
 """
 
 import asyncio
@@ -70,7 +76,9 @@ from .config import parse_bind
 from .history_reader import HISTORY_SIGNALS, HistoryReader
 from .twin_view import ApiError, RateLimiter, TwinView, _num
 
-__all__ = ["ApiServer", "ReidentifyRequest", "SetpointRequest", "WhatIfRequest", "create_app"]
+__all__ = ["ApiServer", "HttpThread", "ReidentifyRequest", "SetpointRequest", "WhatIfRequest",
+           "add_error_handlers", "bearer_guard", "create_app", "history_query",
+           "history_response", "who_wrote"]
 
 _logger = logging.getLogger("kautztwin.service")
 
@@ -266,6 +274,245 @@ def _what_if(req: WhatIfRequest, sigma: float) -> Any:
     return job
 
 
+# ---------------------------------------------------------------------- shared pieces
+def add_error_handlers(app: FastAPI) -> None:
+    """Answer bad input with 422 and :class:`ApiError` with its status, one-line JSON each.
+
+    Every error body is ``{"detail": ..., "message": "one line"}``.  Shared by
+    the twin's API and the fleet's (:mod:`.fleet_api`).
+
+    Parameters
+    ----------
+    app : fastapi.FastAPI
+    """
+
+    @app.exception_handler(RequestValidationError)
+    async def _invalid(request: Request, exc: RequestValidationError) -> JSONResponse:
+        errors = [{"loc": list(e.get("loc", ())), "msg": e.get("msg", ""),
+                   "type": e.get("type", "")} for e in exc.errors()]
+        first = errors[0] if errors else {"loc": [], "msg": "invalid request"}
+        where = ".".join(str(p) for p in first["loc"][1:]) or ".".join(map(str, first["loc"]))
+        return JSONResponse({"detail": errors, "message": f"{where}: {first['msg']}"},
+                            status_code=422)
+
+    @app.exception_handler(ApiError)
+    async def _api_error(request: Request, exc: ApiError) -> JSONResponse:
+        return JSONResponse({"detail": exc.message, "message": exc.message},
+                            status_code=exc.status)
+
+
+def bearer_guard(token: str | None) -> Any:
+    """The token check of writes and streams: ``guard(request)`` raises 401 without it.
+
+    Parameters
+    ----------
+    token : str or None
+        The API token; ``None``: every request passes.
+
+    Returns
+    -------
+    callable
+        ``guard(connection) -> None`` (an HTTP request or a WebSocket); raises
+        :class:`ApiError` 401 (logged as ``api-unauthorised``) when the
+        ``Authorization: Bearer TOKEN`` header is missing or wrong.
+    """
+
+    def guard(request: HTTPConnection) -> None:
+        if token is None:
+            return
+        header = request.headers.get("authorization", "")
+        scheme, _, given = header.partition(" ")
+        if scheme.lower() != "bearer" or not hmac.compare_digest(given.strip().encode(),
+                                                                 token.encode()):
+            _logger.warning("api-unauthorised", extra={"event": "api-unauthorised", "fields": {
+                "path": request.url.path,
+                "client": request.client.host if request.client else "unknown"}})
+            raise ApiError(401, "missing or wrong API token (Authorization: Bearer TOKEN)")
+
+    return guard
+
+
+def who_wrote(request: Request, token: str | None) -> dict[str, Any]:
+    """Who sent a write and when (for the event log).
+
+    Parameters
+    ----------
+    request : starlette.requests.Request
+    token : str or None
+        The API's token (``auth`` is ``'token'`` when one is set).
+
+    Returns
+    -------
+    dict
+        ``who``, ``client``, ``auth``, ``when`` (ISO time, UTC).
+    """
+    host = request.client.host if request.client else "unknown"
+    auth = "token" if token is not None else "loopback"
+    return {"who": f"{host} ({auth})", "client": host, "auth": auth,
+            "when": datetime.now(UTC).isoformat(timespec="milliseconds")}
+
+
+def history_query(signals: str, start: float | None, end: float | None,
+                  allowed: tuple[str, ...] = HISTORY_SIGNALS) -> list[str] | JSONResponse:
+    """The checked signal names of a ``/history`` query, or its 422 answer.
+
+    Parameters
+    ----------
+    signals : str
+        Comma-separated names.
+    start, end : float or None
+        Time window, plant s.
+    allowed : tuple of str, default=HISTORY_SIGNALS
+
+    Returns
+    -------
+    list of str or JSONResponse
+    """
+    names = [s.strip() for s in signals.split(",") if s.strip()]
+    bad = [s for s in names if s not in allowed]
+    if bad or not names:
+        return _query_error("signals", f"unknown signal {bad[0] if bad else '(none)'!r}; "
+                                       f"use {', '.join(allowed)}")
+    for field, value in (("start", start), ("end", end)):
+        if value is not None and not math.isfinite(value):
+            return _query_error(field, f"{field} must be a finite time, got {value}")
+    if start is not None and end is not None and end < start:
+        return _query_error("end", f"end ({end:g}) is before start ({start:g})")
+    return names
+
+
+def history_response(run_id: int | None, names: list[str], cols: dict[str, Any],
+                     nxt: int | None, format: str) -> Response:
+    """A ``/history`` page as JSON (``run_id, n, next, signals``) or CSV (``X-Next`` header).
+
+    Parameters
+    ----------
+    run_id : int or None
+    names : list of str
+        The signals, in order.
+    cols : dict of str to ndarray
+        One column per signal.
+    nxt : int or None
+        The page cursor of the next page (``None``: the last page).
+    format : {'json', 'csv'}
+
+    Returns
+    -------
+    starlette.responses.Response
+    """
+    n = int(next(iter(cols.values())).size)
+    if format == "csv":
+        buf = io.StringIO()
+        w = csv.writer(buf, lineterminator="\n")
+        w.writerow(names)
+        for row in zip(*(cols[s].tolist() for s in names), strict=True):
+            w.writerow(["" if isinstance(v, float) and not math.isfinite(v) else v
+                        for v in row])
+        headers = {"X-Next": str(nxt)} if nxt is not None else {}
+        return Response(buf.getvalue(), media_type="text/csv", headers=headers)
+    data = {s: (cols[s].tolist() if s in ("k", "flags") else _nums(cols[s]))
+            for s in names}
+    return _json({"run_id": run_id, "n": n, "next": nxt, "signals": data})
+
+
+class HttpThread:
+    """An ASGI app served by uvicorn in a daemon thread on ``host:port`` (port 0: a free one).
+
+    The socket is bound here (a busy port is a one-line :class:`DataError`),
+    with ``TCP_NODELAY`` on the accepted connections.  Shared by
+    :class:`ApiServer` and the fleet's server (:mod:`.fleet_api`).
+
+    Parameters
+    ----------
+    app : ASGI application
+    host : str
+    port : int
+
+    Attributes
+    ----------
+    url : str or None
+        ``http://HOST:PORT`` once started.
+    """
+
+    def __init__(self, app: Any, host: str, port: int) -> None:
+        self.app, self.host, self.port = app, host, int(port)
+        self.url: str | None = None
+        self._server: Any = None
+        self._thread: threading.Thread | None = None
+        self._error: BaseException | None = None
+
+    @property
+    def started(self) -> bool:
+        """Whether the thread runs."""
+        return self._thread is not None
+
+    def start(self, timeout: float = 10.0) -> None:
+        """Listen and serve in a daemon thread; return once the server answers.
+
+        Parameters
+        ----------
+        timeout : float, default=10
+            Most seconds to wait for the server to come up.
+
+        Raises
+        ------
+        DataError
+            The address cannot be bound or the server did not start in time.
+        """
+        import uvicorn
+
+        family = socket.AF_INET6 if ":" in self.host else socket.AF_INET
+        # IPPROTO_TCP named: asyncio sets TCP_NODELAY on the accepted connections only then
+        # (with proto 0 Nagle's algorithm and the client's delayed ACK add ~40 ms per answer)
+        sock = socket.socket(family, socket.SOCK_STREAM, socket.IPPROTO_TCP)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            sock.bind((self.host, self.port))
+        except OSError as exc:
+            sock.close()
+            raise DataError(f"http.bind: cannot listen on {self.host}:{self.port}: "
+                            f"{exc.strerror or exc}") from None
+        sock.listen(128)
+        port = sock.getsockname()[1]
+        host = f"[{self.host}]" if family == socket.AF_INET6 else self.host
+        self.url = f"http://{host}:{port}"
+        config = uvicorn.Config(self.app, log_level="warning", access_log=False,
+                                lifespan="off", timeout_graceful_shutdown=1)
+        self._server = server = uvicorn.Server(config)
+
+        def serve() -> None:
+            try:
+                server.run(sockets=[sock])
+            except BaseException as exc:  # reported by start()
+                self._error = exc
+            finally:
+                sock.close()
+
+        self._thread = threading.Thread(target=serve, name="kautztwin-http", daemon=True)
+        self._thread.start()
+        deadline = time.monotonic() + timeout
+        while not server.started:
+            if not self._thread.is_alive() or time.monotonic() > deadline:
+                self.stop()
+                raise DataError(f"http.bind: the HTTP server did not start on {self.url}"
+                                + (f": {self._error}" if self._error else ""))
+            time.sleep(0.02)
+
+    def stop(self, timeout: float = 5.0) -> None:
+        """Stop serving and wait for the thread (idempotent).
+
+        Parameters
+        ----------
+        timeout : float, default=5
+        """
+        if self._server is not None:
+            self._server.should_exit = True
+        if self._thread is not None:
+            self._thread.join(timeout)
+        self._thread = None
+        self._server = None
+
+
 # ---------------------------------------------------------------------- the application
 def create_app(view: TwinView, *, token: str | None = None,
                limiter: RateLimiter | None = None) -> FastAPI:
@@ -289,37 +536,11 @@ def create_app(view: TwinView, *, token: str | None = None,
     app.state.view = view
     service = view.service
 
-    @app.exception_handler(RequestValidationError)
-    async def _invalid(request: Request, exc: RequestValidationError) -> JSONResponse:
-        errors = [{"loc": list(e.get("loc", ())), "msg": e.get("msg", ""),
-                   "type": e.get("type", "")} for e in exc.errors()]
-        first = errors[0] if errors else {"loc": [], "msg": "invalid request"}
-        where = ".".join(str(p) for p in first["loc"][1:]) or ".".join(map(str, first["loc"]))
-        return JSONResponse({"detail": errors, "message": f"{where}: {first['msg']}"},
-                            status_code=422)
-
-    @app.exception_handler(ApiError)
-    async def _api_error(request: Request, exc: ApiError) -> JSONResponse:
-        return JSONResponse({"detail": exc.message, "message": exc.message},
-                            status_code=exc.status)
+    add_error_handlers(app)
+    _authorised = bearer_guard(token)
 
     def _who(request: Request) -> dict[str, Any]:
-        host = request.client.host if request.client else "unknown"
-        auth = "token" if token is not None else "loopback"
-        return {"who": f"{host} ({auth})", "client": host, "auth": auth,
-                "when": datetime.now(UTC).isoformat(timespec="milliseconds")}
-
-    def _authorised(request: HTTPConnection) -> None:
-        if token is None:
-            return
-        header = request.headers.get("authorization", "")
-        scheme, _, given = header.partition(" ")
-        if scheme.lower() != "bearer" or not hmac.compare_digest(given.strip().encode(),
-                                                                 token.encode()):
-            _logger.warning("api-unauthorised", extra={"event": "api-unauthorised", "fields": {
-                "path": request.url.path,
-                "client": request.client.host if request.client else "unknown"}})
-            raise ApiError(401, "missing or wrong API token (Authorization: Bearer TOKEN)")
+        return who_wrote(request, token)
 
     def reader(request: Request) -> None:
         """Dependency of the stream: the token when one is set."""
@@ -444,16 +665,9 @@ def create_app(view: TwinView, *, token: str | None = None,
         format: Literal["json", "csv"] = "json",
     ) -> Response:
         """Stored samples, the twin's predictions and set-points, paged by ``after``."""
-        names = [s.strip() for s in signals.split(",") if s.strip()]
-        bad = [s for s in names if s not in HISTORY_SIGNALS]
-        if bad or not names:
-            return _query_error("signals", f"unknown signal {bad[0] if bad else '(none)'!r}; "
-                                           f"use {', '.join(HISTORY_SIGNALS)}")
-        for field, value in (("start", start), ("end", end)):
-            if value is not None and not math.isfinite(value):
-                return _query_error(field, f"{field} must be a finite time, got {value}")
-        if start is not None and end is not None and end < start:
-            return _query_error("end", f"end ({end:g}) is before start ({start:g})")
+        names = history_query(signals, start, end)
+        if isinstance(names, JSONResponse):
+            return names
         history, run_id = _store()
         if history is None:
             cols: dict[str, Any] = {s: np.empty(0) for s in names}
@@ -461,19 +675,7 @@ def create_app(view: TwinView, *, token: str | None = None,
         else:
             cols, nxt = _reader(history).page(run_id, names, after=after, start=start,
                                               end=end, limit=limit)
-        n = int(next(iter(cols.values())).size)
-        if format == "csv":
-            buf = io.StringIO()
-            w = csv.writer(buf, lineterminator="\n")
-            w.writerow(names)
-            for row in zip(*(cols[s].tolist() for s in names), strict=True):
-                w.writerow(["" if isinstance(v, float) and not math.isfinite(v) else v
-                            for v in row])
-            headers = {"X-Next": str(nxt)} if nxt is not None else {}
-            return Response(buf.getvalue(), media_type="text/csv", headers=headers)
-        data = {s: (cols[s].tolist() if s in ("k", "flags") else _nums(cols[s]))
-                for s in names}
-        return _json({"run_id": run_id, "n": n, "next": nxt, "signals": data})
+        return history_response(run_id, names, cols, nxt, format)
 
     @app.get("/events", tags=["read"])
     def events(kind: str | None = None, after: int = Query(0, ge=0),
@@ -744,9 +946,7 @@ class ApiServer:
         self.limiter = RateLimiter(rate_limit)
         self.app = create_app(self.view, token=token, limiter=self.limiter)
         self.url: str | None = None
-        self._server: Any = None
-        self._thread: threading.Thread | None = None
-        self._error: BaseException | None = None
+        self._http: HttpThread | None = None
         self.ready = threading.Event()
 
     @classmethod
@@ -778,46 +978,12 @@ class ApiServer:
             The address cannot be bound (busy, not on this machine) or the
             server did not start in time.
         """
-        if self.bind is None or self._thread is not None:
+        if self.bind is None or self._http is not None:
             return
-        import uvicorn
-
-        family = socket.AF_INET6 if ":" in self.host else socket.AF_INET
-        # IPPROTO_TCP named: asyncio sets TCP_NODELAY on the accepted connections only then
-        # (with proto 0 Nagle's algorithm and the client's delayed ACK add ~40 ms per answer)
-        sock = socket.socket(family, socket.SOCK_STREAM, socket.IPPROTO_TCP)
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        try:
-            sock.bind((self.host, self.port))
-        except OSError as exc:
-            sock.close()
-            raise DataError(f"http.bind: cannot listen on {self.host}:{self.port}: "
-                            f"{exc.strerror or exc}") from None
-        sock.listen(128)
-        port = sock.getsockname()[1]
-        host = f"[{self.host}]" if family == socket.AF_INET6 else self.host
-        self.url = f"http://{host}:{port}"
-        config = uvicorn.Config(self.app, log_level="warning", access_log=False,
-                                lifespan="off", timeout_graceful_shutdown=1)
-        self._server = server = uvicorn.Server(config)
-
-        def serve() -> None:
-            try:
-                server.run(sockets=[sock])
-            except BaseException as exc:  # reported by start()
-                self._error = exc
-            finally:
-                sock.close()
-
-        self._thread = threading.Thread(target=serve, name="kautztwin-http", daemon=True)
-        self._thread.start()
-        deadline = time.monotonic() + timeout
-        while not server.started:
-            if not self._thread.is_alive() or time.monotonic() > deadline:
-                self.stop()
-                raise DataError(f"http.bind: the HTTP server did not start on {self.url}"
-                                + (f": {self._error}" if self._error else ""))
-            time.sleep(0.02)
+        http = HttpThread(self.app, self.host, self.port)
+        http.start(timeout)
+        self._http = http
+        self.url = http.url
         # The handlers' garbage triggers full cyclic collections, which walk every object of
         # the process holding the interpreter lock (about 0.1 s with the ~10^5 objects of the
         # libraries and the built twin) and stall the sample loop.  Freeze what exists now
@@ -827,6 +993,11 @@ class ApiServer:
         self.ready.set()
         _logger.info("http", extra={"event": "http", "fields": {
             "url": self.url, "docs": f"{self.url}/docs", "token": self.token_set}})
+
+    @property
+    def _server(self) -> Any:
+        """The running ``uvicorn.Server`` (``None`` when not serving)."""
+        return None if self._http is None else self._http._server
 
     @property
     def token_set(self) -> bool:
@@ -843,11 +1014,8 @@ class ApiServer:
         """
         self.view.stopped()
         self.ready.clear()
-        if self._server is not None:
-            self._server.should_exit = True
-        if self._thread is not None:
-            self._thread.join(timeout)
-        self._thread = None
-        self._server = None
+        if self._http is not None:
+            self._http.stop(timeout)
+        self._http = None
         self.app.state.close_reads()
         gc.unfreeze()  # the frozen objects may be collected again once they are garbage

@@ -9,7 +9,8 @@ and one SQLite store holds every asset's history (:mod:`.store`).
 :func:`~.simulate.hydraulic_fleet` builds a simulated fleet of hydraulic
 drives with parameter spread and drift, :func:`~.simulate.summarize` its
 metrics; :mod:`.shards` runs a fleet sharded over Ray actors (optional).
-See docs/fleet.md.
+:mod:`kautztwin.service.fleet_service` serves a fleet on the wall clock with
+one HTTP API for all its assets.  See docs/fleet.md.
 """
 
 from __future__ import annotations

@@ -28,7 +28,7 @@ from ..runtime import TwinConfig
 from .plants import HydraulicFleetPlant
 from .step import FleetRun
 
-__all__ = ["bytes_per_asset", "hydraulic_fleet", "plot_fleet", "summarize"]
+__all__ = ["bytes_per_asset", "distribution", "hydraulic_fleet", "plot_fleet", "summarize"]
 
 _SPREAD_FIELDS = ("inertia", "leakage", "bulk_modulus", "volume", "valve_time_constant",
                   "load_damping")
@@ -150,6 +150,35 @@ def hydraulic_fleet(
                                noise_index=sel, noise_size=n), info
 
 
+def distribution(x: NDArray[np.float64]) -> dict[str, float | int]:
+    """Count, extremes, percentiles (5, 25, 50, 75, 95) and mean of the finite values.
+
+    Parameters
+    ----------
+    x : ndarray
+
+    Returns
+    -------
+    dict
+        ``{"n": 0}`` when none is finite.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kautztwin.twin.fleet.simulate import distribution
+    >>> distribution(np.array([1.0, np.nan, 3.0]))["median"]
+    2.0
+    """
+    f = np.asarray(x, dtype=float)
+    f = f[np.isfinite(f)]
+    if f.size == 0:
+        return {"n": 0}
+    q = np.percentile(f, [5, 25, 50, 75, 95])
+    return {"n": int(f.size), "min": float(f.min()), "p5": float(q[0]), "p25": float(q[1]),
+            "median": float(q[2]), "p75": float(q[3]), "p95": float(q[4]),
+            "max": float(f.max()), "mean": float(f.mean())}
+
+
 def summarize(run: FleetRun, assets: list[dict[str, float]] | None = None) -> dict[str, Any]:
     """Fleet metrics of a run: fit distribution, re-identifications, violations, tracking.
 
@@ -183,15 +212,7 @@ def summarize(run: FleetRun, assets: list[dict[str, float]] | None = None) -> di
         if kind == "desync" and k >= run.k_closed_loop:
             desync[a] += 1
 
-    def dist(x: NDArray[np.float64]) -> dict[str, float | None]:
-        f = x[np.isfinite(x)]
-        if f.size == 0:
-            return {"n": 0}
-        q = np.percentile(f, [5, 25, 50, 75, 95])
-        return {"n": int(f.size), "min": float(f.min()), "p5": float(q[0]), "p25": float(q[1]),
-                "median": float(q[2]), "p75": float(q[3]), "p95": float(q[4]),
-                "max": float(f.max()), "mean": float(f.mean())}
-
+    dist = distribution
     out: dict[str, Any] = {
         "n_assets": int(n), "n_samples": int(run.n_done), "dt": cfg.dt,
         "k_closed_loop": int(run.k_closed_loop),
@@ -224,6 +245,15 @@ def summarize(run: FleetRun, assets: list[dict[str, float]] | None = None) -> di
             "assets_with_any": int((y_out | u_out | du_out).any(axis=1).sum()),
         }
         out["tracking_rms"] = dist(np.sqrt(np.nanmean(err**2, axis=1)))
+    elif "output_violations" in run.counts:  # no records: the counts kept during the run
+        c = run.counts
+        any_v = (c["output_violations"] + c["input_violations"] + c["rate_violations"]) > 0
+        out["violations"] = {
+            "output_samples": int(c["output_violations"].sum()),
+            "input_samples": int(c["input_violations"].sum()),
+            "rate_samples": int(c["rate_violations"].sum()),
+            "assets_with_any": int(any_v.sum()),
+        }
     if assets:
         out["drift"] = dist(np.array([d["drift"] for d in assets]))
     return out

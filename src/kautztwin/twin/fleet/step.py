@@ -25,9 +25,16 @@ of all assets at once:
 **Scope** (what a DigitalTwin can do that the fleet does not):
 ``static_twin``, ``retune`` (pole re-optimisation, consolidation and the
 weight retuning of later versions; the first version's tuning is done),
-injected ``faults``, background threads, a DNN estimator, resume from the
-store, real-time pacing and live links.  :class:`Fleet` refuses such a
-configuration with a one-line :class:`~kautztwin.exceptions.DataError`.
+injected ``faults``, background threads, real-time pacing and live links.
+:class:`Fleet` refuses such a configuration with a one-line
+:class:`~kautztwin.exceptions.DataError`.  A trained neural ``estimator``
+is the fleet's own option (no DigitalTwin counterpart in the recovery
+path): the due re-identifications then take its fast path, one estimator
+call for all the assets due at a sample (:meth:`.FleetUpdater.dnn_update`).
+Per-asset set-points (:meth:`Fleet.set_setpoint`) override the
+configuration's schedule from the next sample (the service's
+``POST /assets/{id}/setpoint``; ``kautztwin.service.fleet_service``
+steps a fleet on the wall clock).
 
 Size: :class:`Fleet` is the sample loop and its phases (the runtime's
 ``DigitalTwin.step`` and ``_begin_twin`` as array operations); the
@@ -58,7 +65,7 @@ from .mpc_batch import BatchedController
 from .plants import FleetPlant
 from .store import FleetStore
 from .sync import FleetMonitor, FleetSanitizer
-from .update import FleetUpdater, ReidOutcome
+from .update import FleetUpdater, ReidOutcome, estimator_grid
 
 __all__ = ["Fleet", "FleetRun", "history_length"]
 
@@ -193,6 +200,24 @@ class Fleet:
     record : bool, default=True
         Keep the per-sample arrays of every asset in memory (for tests and
         plots; off for large fleets).
+    estimator : object, optional
+        A trained neural estimator of step responses
+        (:class:`~kautztwin.nn.AdaptivePoleEstimator`) whose basis size plus
+        the extra fast-path poles is the twins': the due re-identification
+        attempts use it, one ``predict_models`` call per sample for all the
+        due assets (:meth:`.FleetUpdater.dnn_update`), instead of the
+        output-error fits.
+
+    Attributes
+    ----------
+    last : dict
+        The latest step: ``k``, ``t`` and the arrays over the assets ``y``,
+        ``u``, ``command``, ``y_pred``, ``flags``, ``reference``, ``version``
+        (new arrays every step; what the fleet service's API reads).
+    counts : dict of str to ndarray
+        Per asset: ``mpc_failures``, ``mpc_fallbacks``, ``flagged`` and the
+        closed-loop samples outside the output, input and rate limits
+        (``output_violations``, ``input_violations``, ``rate_violations``).
 
     Raises
     ------
@@ -216,6 +241,7 @@ class Fleet:
     def __init__(
         self, plant: FleetPlant, config: TwinConfig, seeds: ArrayLike | None = None, *,
         store: FleetStore | str | None = None, workers: int = 1, record: bool = True,
+        estimator: Any = None,
     ) -> None:
         _check_config(config)
         n = int(plant.n_assets)
@@ -239,6 +265,9 @@ class Fleet:
         self._started = False
         self._pool: ProcessPoolExecutor | None = None
         self._solve_mpc = True
+        if estimator is not None:
+            estimator_grid(estimator, config.dt)  # a one-line error now, not after identifying
+        self.estimator = estimator
 
     # ------------------------------------------------------------------ pool
     def _map(self, fn: Callable[[Any], Any], items: Sequence[Any]) -> list[Any]:
@@ -280,6 +309,7 @@ class Fleet:
         self._k_cl = cfg.n_ident
         self._v_prev = np.full(N, cfg.operating_input)
         self._ref = np.full(N, math.nan)
+        self._setpoint = np.full(N, math.nan)  # per-asset overrides (NaN: the schedule)
         self._hist_len = history_length(cfg)
         self._command = np.zeros((N, self._hist_len))
         self._ident_y = np.zeros((N, cfg.n_ident))
@@ -296,7 +326,10 @@ class Fleet:
         self.events: list[tuple[int, int, str, str]] = []
         self.outcomes: list[ReidOutcome] = []
         self.counts = {name: np.zeros(N, dtype=np.int64) for name in (
-            "mpc_failures", "mpc_fallbacks", "flagged")}
+            "mpc_failures", "mpc_fallbacks", "flagged", "output_violations",
+            "input_violations", "rate_violations")}
+        self._u_last = np.full(N, math.nan)
+        self.last: dict[str, Any] = {}
         self.arrays: dict[str, NDArray[Any]] = {}
         if self.record:
             for name in _RECORDED:
@@ -310,6 +343,7 @@ class Fleet:
         self._resume_k = 0
         self.replay_mismatches = 0
         self._stored: dict[str, NDArray[Any]] | None = None
+        self._replay_setpoints: list[tuple[int, int, float]] = []
         if self.store is not None:
             run_cfg = {"twin": cfg.to_dict(), "n_assets": N, "seeds": self.seeds.tolist()}
             found = self.store.find_run(run_cfg) if resume else None
@@ -322,6 +356,8 @@ class Fleet:
                         f"run {found} in {self.store.path} holds {st['k'].size} samples, not "
                         f"{N} assets x {self._resume_k} steps; it cannot be resumed")
                 self._stored = {name: st[name].reshape(N, self._resume_k) for name in ("u", "y")}
+                # set-points written to the run (the service's API) are replayed at their sample
+                self._replay_setpoints = self.store.setpoints(found)
             else:
                 self.run_id = self.store.start_run(run_cfg)
         self._started = True
@@ -347,6 +383,9 @@ class Fleet:
         if k >= cfg.n_samples:
             raise DataError(f"the run is complete ({cfg.n_samples} samples)")
         t_k = k * cfg.dt
+        while self._replay_setpoints and self._replay_setpoints[0][0] <= k:
+            _, asset, value = self._replay_setpoints.pop(0)
+            self._setpoint[asset] = value
         y_raw = self._y
         flags = self.sanitizer.process(y_raw)
         clean = (flags & int(SampleFlag.HELD | SampleFlag.OUTLIER)) == 0
@@ -361,6 +400,8 @@ class Fleet:
                 self._begin_twin(k, y_raw, clean)
             with self._timed("mpc"):
                 u, v = self._track(k, t_k, y_raw, clean)
+            self._violations(y_raw, u)
+        self._u_last = u
         self._command[:, k % self._hist_len] = v
         self._v_prev = v
         y_pred = np.full(self.n_assets, math.nan)
@@ -380,11 +421,24 @@ class Fleet:
                 self.store.add_samples(self.run_id, k, t_k, u, y_raw, y_pred, flags)
                 if (k + 1) % cfg.commit_every == 0 or k + 1 == cfg.n_samples:
                     self.store.commit()
+        self.last = {"k": k, "t": t_k, "y": y_raw, "u": u, "command": v, "y_pred": y_pred,
+                     "flags": flags, "reference": self._ref.copy(),
+                     "version": self._version.copy()}
         if k + 1 < cfg.n_samples:
             with self._timed("plant"):
                 self._y = np.asarray(self.plant.step(u), dtype=float)
         self._k = k + 1
         return k
+
+    def _violations(self, y: NDArray, u: NDArray) -> None:
+        """Count the closed-loop samples outside the output, input and rate limits."""
+        m = self.config.mpc
+        assert m is not None
+        tol = 1e-9  # as summarize() counts them from the records
+        c = self.counts
+        c["output_violations"] += (y < m.y_min) | (y > m.y_max)
+        c["input_violations"] += (u < m.u_min - tol) | (u > m.u_max + tol)
+        c["rate_violations"] += np.abs(u - self._u_last) > m.du_max + tol
 
     def _add_fits(self, k: int, assets: NDArray[np.intp], fits: NDArray[np.float64]) -> None:
         """Record window fits: every one with ``record``, closed-loop statistics always."""
@@ -416,7 +470,9 @@ class Fleet:
         y_fb = np.where(clean, y_raw, self.updater.predict())
         first = np.isnan(self._ref)
         self._ref[first] = y_fb[first]
-        sp = cfg.setpoint(t_k)
+        sp: Any = cfg.setpoint(t_k)
+        if not np.isnan(self._setpoint).all():
+            sp = np.where(np.isnan(self._setpoint), sp, self._setpoint)
         if cfg.reference_tau > 0:
             alpha = 1.0 - math.exp(-cfg.dt / cfg.reference_tau)
             self._ref += alpha * (sp - self._ref)
@@ -514,6 +570,108 @@ class Fleet:
         d[ks < self._k_cl] = 0.0  # no dither in the identification phase
         return v, d
 
+    def _inputs(self, i: int, first: int, n: int) -> NDArray[np.float64]:
+        """Asset ``i``'s plant inputs of samples ``first .. n - 1`` (the last ``h`` kept).
+
+        Rebuilt from the command history exactly as :meth:`step` formed them:
+        the excitation in the identification phase (stored as the command),
+        ``clip(v + d, u_min, u_max)`` in the closed loop.  The update module's
+        buffer reads its inputs here instead of keeping a copy.
+        """
+        h = self._hist_len
+        if n - first > h:
+            raise DataError(f"only the last {h} inputs are kept, {n - first} were asked for")
+        ks = np.arange(first, n)
+        u = self._command[i, ks % h].copy()
+        cl = ks >= self._k_cl
+        if cl.any():
+            mpc = self.config.mpc
+            assert mpc is not None
+            d = self.signals.dither_history(i, first, n)
+            u[cl] = np.clip(u[cl] + d[cl], mpc.u_min, mpc.u_max)
+        return u
+
+    def set_setpoint(self, assets: ArrayLike, value: float) -> int:
+        """Hold ``value`` as the set-point of ``assets`` from the next sample on.
+
+        The override replaces the rest of the configuration's schedule for
+        those assets (as ``POST /setpoint`` does for one twin); the reference
+        filter moves towards it as towards a scheduled step.
+
+        Parameters
+        ----------
+        assets : array-like of int
+        value : float
+
+        Returns
+        -------
+        int
+            The first sample that uses it (after the recomputed samples of a
+            resumed run).
+
+        Raises
+        ------
+        DataError
+            If an asset index is out of range or ``value`` is not finite.
+        """
+        if not self._started:
+            raise DataError("call start() (or run()) first")
+        idx = np.asarray(assets, dtype=np.intp).reshape(-1)
+        if idx.size and (idx.min() < 0 or idx.max() >= self.n_assets):
+            raise DataError(f"asset indices must lie in [0, {self.n_assets})")
+        v = float(value)
+        if not math.isfinite(v):
+            raise DataError(f"the set-point must be a finite number, got {value!r}")
+        # while a resumed run recomputes its stored samples, a new set-point waits for the
+        # first sample after them (the recomputed ones must stay those stored)
+        k_from = max(self._k, self._resume_k)
+        if k_from > self._k:
+            self._replay_setpoints = sorted(
+                self._replay_setpoints + [(k_from, int(a), v) for a in idx.tolist()],
+                key=lambda e: e[0])
+        else:
+            self._setpoint[idx] = v
+        if self.store is not None and self.run_id is not None:
+            self.store.add_setpoints(self.run_id, idx, k_from, k_from * self.config.dt, v)
+        return k_from
+
+    @property
+    def k(self) -> int:
+        """Samples processed so far (the next sample's index)."""
+        return int(getattr(self, "_k", 0))
+
+    @property
+    def started(self) -> bool:
+        """Whether :meth:`start` has run."""
+        return bool(self._started)
+
+    @property
+    def resumed_at(self) -> int:
+        """Committed samples of the resumed run (recomputed, not stored again); 0 for a new run."""
+        return int(getattr(self, "_resume_k", 0))
+
+    @property
+    def k_closed_loop(self) -> int:
+        """The first closed-loop sample (the end of the identification phase)."""
+        return int(getattr(self, "_k_cl", self.config.n_ident))
+
+    def setpoints(self, t: float) -> NDArray[np.float64]:
+        """Every asset's set-point in force at plant time ``t`` from now on.
+
+        Parameters
+        ----------
+        t : float
+
+        Returns
+        -------
+        ndarray of shape (n_assets,)
+        """
+        sp = float(self.config.setpoint(t))
+        over = getattr(self, "_setpoint", None)
+        if over is None:
+            return np.full(self.n_assets, sp)
+        return np.where(np.isnan(over), sp, over)
+
     def _install(self, i: int, build: ControllerBuild, model: Any) -> None:
         assert self.controller is not None
         self.controller.install(i, build.qp, build.A, build.B, build.c, build.xv, build.xv_prev,
@@ -542,7 +700,12 @@ class Fleet:
             mon = FleetMonitor(N, window=cfg.monitor_window, stride=cfg.monitor_stride,
                                threshold=cfg.monitor_threshold,
                                n_consecutive=cfg.monitor_consecutive)
-            self.updater = upd = FleetUpdater(updaters, mon, map_fn=self._map)
+            # the command ring gives every input of the last h samples (all of them when h is
+            # the run's length): the update module's buffer needs no copy of its own
+            span = self._hist_len if self._hist_len < cfg.n_samples else None
+            self.updater = upd = FleetUpdater(updaters, mon, map_fn=self._map,
+                                              inputs=self._inputs, inputs_span=span,
+                                              estimator=self.estimator)
             del updaters
             # the twins catch up on the identification samples (their own sanitiser sees
             # the same samples as the loop's: the same flags)
@@ -680,7 +843,8 @@ class Fleet:
             total += self.updater.nbytes + self.updater.monitor.nbytes
         if self.controller is not None:
             total += self.controller.nbytes
-        total += self._v_prev.nbytes + self._ref.nbytes + self._version.nbytes
+        total += (self._v_prev.nbytes + self._ref.nbytes + self._version.nbytes
+                  + self._setpoint.nbytes)
         return total / self.n_assets
 
     def __repr__(self) -> str:

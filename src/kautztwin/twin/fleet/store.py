@@ -38,6 +38,9 @@ CREATE TABLE IF NOT EXISTS fleet_versions (
     run_id INTEGER NOT NULL, asset INTEGER NOT NULL, version INTEGER NOT NULL,
     k INTEGER NOT NULL, provenance TEXT, fit_percent REAL, model TEXT,
     PRIMARY KEY (run_id, asset, version));
+CREATE TABLE IF NOT EXISTS fleet_setpoints (
+    run_id INTEGER NOT NULL, asset INTEGER NOT NULL, k_from INTEGER NOT NULL, t REAL NOT NULL,
+    value REAL NOT NULL);
 CREATE TABLE IF NOT EXISTS fleet_events (
     run_id INTEGER NOT NULL, asset INTEGER NOT NULL, k INTEGER NOT NULL, kind TEXT NOT NULL,
     message TEXT NOT NULL);
@@ -191,6 +194,47 @@ class FleetStore:
                  None if fit is None or not math.isfinite(fit) else float(fit),
                  json.dumps({"poles": poles,
                              "coefficients": np.asarray(dm.model.coefficients).tolist()})))
+
+    def add_setpoints(self, run_id: int, assets: NDArray[np.intp], k_from: int, t: float,
+                      value: float) -> None:
+        """Store set-points written to a run (committed at once).
+
+        Parameters
+        ----------
+        run_id : int
+        assets : ndarray of int
+        k_from : int
+            The first sample that uses it.
+        t : float
+            That sample's time, s.
+        value : float
+        """
+        with self._con:
+            self._con.executemany(
+                "INSERT INTO fleet_setpoints VALUES (?, ?, ?, ?, ?)",
+                [(int(run_id), int(a), int(k_from), float(t), float(value))
+                 for a in np.asarray(assets).reshape(-1).tolist()])
+
+    def setpoints(self, run_id: int, asset: int | None = None) -> list[tuple[int, int, float]]:
+        """Set-points written to a run: ``(k_from, asset, value)`` in writing order.
+
+        Parameters
+        ----------
+        run_id : int
+        asset : int, optional
+            Only this asset's.
+
+        Returns
+        -------
+        list of (int, int, float)
+        """
+        q = "SELECT k_from, asset, value FROM fleet_setpoints WHERE run_id = ?"
+        args: tuple[Any, ...] = (int(run_id),)
+        if asset is not None:
+            q += " AND asset = ?"
+            args += (int(asset),)
+        rows = self._con.execute(q + " ORDER BY k_from, rowid", args).fetchall()
+        return [(int(k), int(a), float(v)) for k, a, v in rows]
 
     def log_events(self, run_id: int | None, events: Sequence[tuple[int, int, str, str]]) -> None:
         """Store events ``(asset, k, kind, message)``.

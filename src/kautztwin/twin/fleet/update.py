@@ -10,6 +10,25 @@ path is the updater's: the same window (:meth:`_prepare`), the same fit
 (``_fit_window`` of :mod:`kautztwin.twin.update.worker`, in a
 :class:`concurrent.futures` pool for all the assets due at one sample) and
 the same validation on held-out samples (:meth:`_judge`).
+
+With a trained neural estimator (``estimator``, e.g.
+:class:`~kautztwin.nn.AdaptivePoleEstimator`) the attempts due at a sample
+take the fast path of :meth:`Updater.update_from_step_test
+<kautztwin.twin.Updater.update_from_step_test>` instead of the output-error
+fits: every due asset's live model runs a virtual step test on the
+estimator's grid (:meth:`FleetUpdater.step_records`, one array recursion for
+all of them), the estimator is called **once** on all these records
+(``predict_models``), and each candidate is judged on the asset's held-out
+samples as a re-identified one is.
+
+Memory: the inputs of the buffer of recent samples can come from the caller
+(``inputs``: the fleet derives them from its command history and the seeded
+dither), so that only the outputs are buffered.
+
+Size: :class:`FleetUpdater` passes 400 lines because it holds the whole update
+module of N twins - the fast path, the buffer, the recovery policy and both
+accurate paths (output-error fits and the DNN) - over one set of arrays that
+all of them read and write; split, the state would be shared across classes.
 """
 
 from __future__ import annotations
@@ -25,6 +44,7 @@ from numpy.typing import NDArray
 
 from ...approx.model import KautzModel
 from ...basis import KautzBasis
+from ...exceptions import DataError
 from ...ident.kautz_oe import continuous_poles, filter_states
 from ...metrics import fit_percent_or_nan
 from ..digital import DigitalModel, discretize_model
@@ -33,7 +53,7 @@ from ..update.worker import _ReidJob
 from .assets import reid_job, unpack_fit
 from .sync import FleetMonitor
 
-__all__ = ["FleetUpdater", "ReidOutcome"]
+__all__ = ["FleetUpdater", "ReidOutcome", "estimator_grid"]
 
 
 @dataclass(frozen=True)
@@ -62,6 +82,40 @@ class ReidOutcome:
     version: int
 
 
+def estimator_grid(est: Any, dt: float) -> NDArray[np.intp]:
+    """The twin samples of a neural estimator's grid, or a one-line error why it cannot serve.
+
+    Parameters
+    ----------
+    est : object
+        A fitted estimator with ``predict_models``, ``t_`` and ``kind_ == 'step'``.
+    dt : float
+        The twins' sampling period, s.
+
+    Returns
+    -------
+    ndarray of int
+        ``t_ / dt`` (every grid time must be a sample ``k * dt``, ``k >= 0``).
+
+    Raises
+    ------
+    DataError
+        If ``est`` is not such an estimator or its grid is off the samples.
+    """
+    if not callable(getattr(est, "predict_models", None)) or not hasattr(est, "t_"):
+        raise DataError("estimator must be a fitted neural estimator with predict_models "
+                        f"and a time grid t_, got {type(est).__name__}")
+    if getattr(est, "kind_", "step") != "step":
+        raise DataError(f"the fleet's estimator must be trained on step responses, got "
+                        f"kind {est.kind_!r}")
+    t = np.asarray(est.t_, dtype=float).reshape(-1)
+    idx = np.rint(t / dt).astype(np.intp)
+    if t.size == 0 or idx.min() < 0 or not np.allclose(idx * dt, t, rtol=1e-9, atol=1e-9 * dt):
+        raise DataError(f"the estimator's grid t_ must be samples of the twin's dt = {dt:g} s "
+                        "(k * dt, k >= 0)")
+    return idx
+
+
 class FleetUpdater:
     """Fast path, monitor and recovery policy of ``n_assets`` twins.
 
@@ -78,6 +132,19 @@ class FleetUpdater:
     map_fn : callable, optional
         ``map_fn(function, jobs) -> results`` for the re-identification fits
         (a pool's ``map``); the built-in ``map`` when omitted.
+    inputs : callable, optional
+        ``inputs(i, first, stop) -> ndarray``: asset ``i``'s inputs of samples
+        ``first .. stop - 1`` (the values given to :meth:`step`).  With it
+        only the outputs are buffered (half the buffer's memory).
+    inputs_span : int or None, default=0
+        How many of the latest samples ``inputs`` can give (``None``: all of
+        them); it is used only when that covers the buffer.
+    estimator : object, optional
+        A trained neural estimator with ``predict_models(records, t=...)``,
+        ``t_``, ``kind_ == 'step'`` and ``n_functions_`` (an
+        :class:`~kautztwin.nn.AdaptivePoleEstimator`): the due attempts use it,
+        one call for all the assets due at a sample, instead of the
+        output-error fits (see the module notes).
 
     Attributes
     ----------
@@ -89,7 +156,9 @@ class FleetUpdater:
 
     def __init__(
         self, updaters: Sequence[Updater], monitor: FleetMonitor,
-        map_fn: Callable[..., Any] | None = None,
+        map_fn: Callable[..., Any] | None = None, *,
+        inputs: Callable[[int, int, int], NDArray[np.float64]] | None = None,
+        inputs_span: int | None = 0, estimator: Any = None,
     ) -> None:
         u0 = updaters[0]
         N = len(updaters)
@@ -134,7 +203,10 @@ class FleetUpdater:
         self.theta_frozen = self.theta.copy()
         self.monitor = monitor
         self.L = self.reid_samples + self.burn_in
-        self.buf_u = np.zeros((N, self.L))
+        covers = inputs_span is None or int(inputs_span) >= self.L
+        self._inputs = inputs if inputs is not None and covers else None
+        self.buf_u: NDArray[np.float64] | None = (
+            np.zeros((N, self.L)) if self._inputs is None else None)
         self.buf_y = np.zeros((N, self.L))
         self.buf_n = 0  # samples in the buffers (the same for every asset)
         self.buf_pos = 0  # where the next one goes
@@ -148,6 +220,20 @@ class FleetUpdater:
                        "accepted": np.zeros(N, dtype=np.int64)}
         self.map_fn = map_fn if map_fn is not None else map
         self.reid_seconds = 0.0  # wall time of the accurate path so far
+        self.estimator = estimator
+        self._grid: NDArray[np.intp] | None = None
+        if estimator is not None:
+            self._grid = self._check_estimator(estimator)
+
+    def _check_estimator(self, est: Any) -> NDArray[np.intp]:
+        """The sample indices of the estimator's grid (raises if it cannot serve the fleet)."""
+        idx = estimator_grid(est, self.dt)
+        widths = {len(e) for e in self.extra_poles}
+        n_est = int(getattr(est, "n_functions_", self.n - min(widths)))
+        if any(n_est + w != self.n for w in widths):
+            raise DataError(f"the estimator has {n_est} basis functions but the twins' models "
+                            f"have {self.n - max(widths)}")
+        return idx
 
     # ------------------------------------------------------------------ the fast path
     def predict(self) -> NDArray[np.float64]:
@@ -211,7 +297,8 @@ class FleetUpdater:
         phi[:, :n] = np.einsum("bij,bj->bi", self.A, phi[:, :n]) + self.B * (
             u - self.input_offset)[:, None]
         # the ring buffer of recent samples
-        self.buf_u[:, self.buf_pos] = u
+        if self.buf_u is not None:
+            self.buf_u[:, self.buf_pos] = u
         self.buf_y[:, self.buf_pos] = yv
         self.buf_pos = (self.buf_pos + 1) % self.L
         self.buf_n = min(self.buf_n + 1, self.L)
@@ -283,10 +370,17 @@ class FleetUpdater:
         u, y : ndarray of shape (n_buffered,)
         """
         if self.buf_n < self.L:
-            return self.buf_u[i, : self.buf_n].copy(), self.buf_y[i, : self.buf_n].copy()
-        p = self.buf_pos
-        return (np.concatenate([self.buf_u[i, p:], self.buf_u[i, :p]]),
-                np.concatenate([self.buf_y[i, p:], self.buf_y[i, :p]]))
+            y = self.buf_y[i, : self.buf_n].copy()
+            u = None if self.buf_u is None else self.buf_u[i, : self.buf_n].copy()
+        else:
+            p = self.buf_pos
+            y = np.concatenate([self.buf_y[i, p:], self.buf_y[i, :p]])
+            u = None if self.buf_u is None else np.concatenate(
+                [self.buf_u[i, p:], self.buf_u[i, :p]])
+        if u is None:
+            assert self._inputs is not None
+            u = np.array(self._inputs(i, self.k - self.buf_n, self.k), dtype=float)
+        return u, y
 
     def reidentify(self, assets: NDArray[np.intp]) -> list[ReidOutcome]:
         """Re-identification attempts of ``assets`` now: fits in the pool, judged here.
@@ -299,6 +393,8 @@ class FleetUpdater:
         -------
         list of ReidOutcome
         """
+        if self.estimator is not None:
+            return self.dnn_update(assets)
         out: list[ReidOutcome] = []
         jobs: list[tuple[int, _ReidJob]] = []
         for i in assets.tolist():
@@ -311,7 +407,88 @@ class FleetUpdater:
         for (i, job), res in zip(jobs, results, strict=True):
             assert res is not None
             fit = unpack_fit(res)
-            out.append(self._judge(i, fit.model, fit.offset, job))
+            out.append(self._judge(i, fit.model, fit.offset, job.u, job.y, job.n_val))
+        out.sort(key=lambda o: o.asset)
+        return out
+
+    # ------------------------------------------------------------------ the DNN fast path
+    def step_records(self, assets: NDArray[np.intp]) -> NDArray[np.float64]:
+        """Unit step responses of the assets' live models on the estimator's grid.
+
+        The virtual step test of :meth:`Optimizer.retune_model
+        <kautztwin.twin.Optimizer.retune_model>` for many assets at once: each
+        live fast-path model (filters ``A, B``, coefficients ``theta``, without
+        the output offset) from rest, a unit step applied at sample 0.
+
+        Parameters
+        ----------
+        assets : ndarray of int
+
+        Returns
+        -------
+        ndarray of shape (len(assets), n_grid)
+            The responses at the samples of the estimator's grid ``t_ / dt``.
+        """
+        if self._grid is None:
+            raise DataError("the fleet's update module has no estimator")
+        idx = np.asarray(assets, dtype=np.intp)
+        n = self.n
+        A, B, c = self.A[idx], self.B[idx], self.theta[idx, :n]
+        x = np.zeros((idx.size, n))
+        last = int(self._grid.max())
+        resp = np.empty((idx.size, last + 1))
+        for j in range(last + 1):
+            resp[:, j] = np.einsum("bi,bi->b", c, x)
+            x = np.einsum("bij,bj->bi", A, x) + B
+        return resp[:, self._grid]
+
+    def dnn_update(self, assets: NDArray[np.intp]) -> list[ReidOutcome]:
+        """Attempts of ``assets`` now from the estimator: one call for all, each judged.
+
+        The windows are those of :meth:`Updater.update_from_step_test
+        <kautztwin.twin.Updater.update_from_step_test>` (the last
+        ``reid_samples`` buffered samples, their final ``validation_fraction``
+        held out); an asset with too few held-out samples is refused.  The
+        records of the others (:meth:`step_records`) go to the estimator's
+        ``predict_models`` in **one** call; each candidate (continuous poles,
+        discretised at ``dt``, the live offset) is then judged as a
+        re-identified one.
+
+        Parameters
+        ----------
+        assets : ndarray of int
+
+        Returns
+        -------
+        list of ReidOutcome
+        """
+        out: list[ReidOutcome] = []
+        ready: list[tuple[int, NDArray, NDArray, int]] = []
+        for i in np.asarray(assets, dtype=np.intp).tolist():
+            self.counts["attempts"][i] += 1
+            u_all, y_all = self.buffer(i)
+            n_w = min(self.reid_samples, u_all.size)
+            n_val = int(self.validation_fraction * n_w)
+            if n_val < 10 or np.isfinite(y_all[-n_val:]).sum() < 10:
+                out.append(ReidOutcome(i, self.k, False, f"too few samples: {n_val} held out",
+                                       math.nan, math.nan, self.digital_models[i].version))
+                continue
+            h0 = max(0, u_all.size - n_w - self.burn_in)
+            ready.append((i, u_all[h0:], y_all[h0:], n_val))
+        if ready:
+            rows = np.array([r[0] for r in ready], dtype=np.intp)
+            records = self.step_records(rows)
+            models = self.estimator.predict_models(records, t=self.estimator.t_)
+            for (i, u, y, n_val), model in zip(ready, models, strict=True):
+                try:
+                    md = discretize_model(model, self.dt)
+                except (DataError, ValueError, np.linalg.LinAlgError) as exc:
+                    out.append(ReidOutcome(i, self.k, False, f"the estimate cannot be "
+                                           f"discretised: {exc}", math.nan, math.nan,
+                                           self.digital_models[i].version))
+                    continue
+                out.append(self._judge(i, md, float(self.theta[i, self.n]), u, y, n_val,
+                                       kind="dnn-update"))
         out.sort(key=lambda o: o.asset)
         return out
 
@@ -323,10 +500,10 @@ class FleetUpdater:
         basis = KautzBasis(poles, dt=self.dt, delayed=True)
         return KautzModel(basis, np.concatenate([model.coefficients, np.zeros(extra.size)]))
 
-    def _judge(self, i: int, model: KautzModel, offset: float, job: _ReidJob) -> ReidOutcome:
+    def _judge(self, i: int, model: KautzModel, offset: float, u: NDArray, y: NDArray,
+               n_val: int, kind: str = "reidentification") -> ReidOutcome:
         """Validate asset ``i``'s candidate on the held-out samples (as :meth:`Updater._judge`)."""
         n = self.n
-        u, y, n_val = job.u, job.y, job.n_val
         v = u - self.input_offset
         Xc = filter_states(model.basis, v)
         yc = Xc[:-1] @ model.coefficients + offset
@@ -346,7 +523,7 @@ class FleetUpdater:
             return ReidOutcome(i, self.k, False,
                                f"candidate fit {fit_c:.2f} % on {n_val} held-out samples is below "
                                f"min_candidate_fit = {floor:g} %", fit_c, fit_m, version)
-        dm = self.digital_models[i].with_update(model, "reidentification", fit_c)
+        dm = self.digital_models[i].with_update(model, kind, fit_c)
         self.digital_models[i] = dm
         self.core_n[i] = model.n_functions
         state = Xc[-1]
@@ -382,6 +559,7 @@ class FleetUpdater:
     def nbytes(self) -> int:
         """Bytes held in the arrays (the monitor's not included)."""
         return int(sum(a.nbytes for a in (
-            self.theta, self.P, self.phi, self.A, self.B, self.theta_frozen, self.buf_u,
-            self.buf_y, self.n_updates, self.rec_on, self.rec_change, self.rec_next,
+            self.theta, self.P, self.phi, self.A, self.B, self.theta_frozen,
+            *(() if self.buf_u is None else (self.buf_u,)), self.buf_y, self.n_updates,
+            self.rec_on, self.rec_change, self.rec_next,
             self.rec_attempts, self.model_k, self.core_n)))
