@@ -1,7 +1,8 @@
 """The live twin's transports: sample-to-prediction latency and the highest sustained sample rate.
 
 For the hydraulic drive (dt = 0.02 s), one twin (:class:`~kautztwin.twin.runtime.DigitalTwin`,
-the quick hydraulic profile, background re-identification, as ``twin serve`` builds it) is run
+the quick hydraulic profile, background re-identification - in a worker process for the
+network links, as ``twin serve`` builds it) is run
 in this process against three plant links, side by side:
 
 * ``in-process``: the simulator stepped in this process, paced by a real-time clock sped up
@@ -41,6 +42,7 @@ import socket
 import subprocess
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -287,6 +289,8 @@ def run_case(transport: str, speed: float, *, window: float, ident: float,
         n_ident = int(round(ident / DT))
         config = TwinConfig.for_plant("hydraulic", quick=True, duration=3600.0,
                                       ident_duration=ident, seed=0)
+        if transport != "in-process":  # as twin serve (model.worker = auto): a fit process
+            config = replace(config, updater={**config.updater, "worker": "process"})
         twin = DigitalTwin(probe, config, history=None, clock=clock, background=True)
         try:
             twin.start(resume=False)
@@ -369,7 +373,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.max_speed is not None:
         settings["speeds"] = [s for s in settings["speeds"] if s <= args.max_speed]
     settings.update(plant="hydraulic", dt=DT, keep_up=KEEP_UP,
-                    profile="TwinConfig.for_plant('hydraulic', quick=True), background=True")
+                    profile="TwinConfig.for_plant('hydraulic', quick=True), background=True; "
+                    "re-identification in a worker process for opcua and mqtt (twin serve's "
+                    "model.worker = auto)")
     broker_proc = None
     broker = None
     sweeps: dict[str, list[dict[str, Any]]] = {}

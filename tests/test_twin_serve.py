@@ -101,6 +101,8 @@ def test_example_config_loads_and_serves(tmp_path):
     ("", ("--plant", "opc.tcp://127.0.0.1:PORT", "--plant-connect-timeout", "1"),
      "cannot connect to opc.tcp://127.0.0.1:"),
     ("", ("--plant", "hydraulic", "--model-duration", "1e7"), "service.max_memory_mb"),
+    ("[history]\nsynchronous = 'off'", (), "history.synchronous must be normal or full"),
+    ("[model]\nworker = 'gpu'", (), "model.worker must be auto, thread or process"),
 ])
 def test_bad_config_is_one_line_and_exit_2(capsys, tmp_path, toml, extra, message):
     path = tmp_path / "twin.toml"
@@ -113,6 +115,61 @@ def test_bad_config_is_one_line_and_exit_2(capsys, tmp_path, toml, extra, messag
     err = capsys.readouterr().err.strip().splitlines()
     err = [line for line in err if not line.startswith("{") and "level=" not in line]
     assert len(err) == 1 and err[0].startswith("kautztwin: error: ") and message in err[0], err
+
+
+@pytest.mark.parametrize("table", ["service]\nout = 'a/b/c'", "history]\npath = 'x/y/h.sqlite'"])
+def test_store_in_a_missing_nested_folder_is_created(tmp_path, table):
+    """A TOML ``service.out`` or ``history.path`` in a folder that does not exist yet."""
+    cfg = tmp_path / "cfg"
+    cfg.mkdir()
+    path = cfg / "twin.toml"
+    path.write_text("[plant]\nkind = 'hydraulic'\nspeed = 100.0\n[model]\nduration = 20.0\n"
+                    f"quick = true\nbackground = false\n[{table}\n")
+    extra = () if table.startswith("service") else ("--out", str(tmp_path / "out"))
+    assert main(["twin", "serve", "--config", str(path), "--duration", "1", *extra]) == 0
+    store = cfg / ("a/b/c/history.sqlite" if table.startswith("service") else "x/y/h.sqlite")
+    assert committed(store) > 0
+    # the library (no command line) makes the folders too
+    from kautztwin.service import TwinService
+
+    out = tmp_path / "lib" / "deeper" / "run"
+    svc = TwinService(load_service_config(None, {
+        "plant.kind": "hydraulic", "plant.speed": "200", "model.duration": "4",
+        "model.quick": "true", "model.background": "false", "service.out": str(out)}))
+    svc.run()
+    assert committed(out / "history.sqlite") > 0 and svc.history is None  # closed
+
+
+@pytest.mark.parametrize("value, pragma", [(None, 1), ("full", 2)])  # NORMAL = 1, FULL = 2
+def test_history_synchronous_sets_the_store(tmp_path, value, pragma):
+    from kautztwin.service import TwinService
+
+    over = {"plant.kind": "hydraulic", "plant.speed": "200", "model.duration": "4",
+            "model.quick": "true", "service.out": str(tmp_path)}
+    if value is not None:
+        over["history.synchronous"] = value
+    svc = TwinService(load_service_config(None, over))
+    svc.build()
+    try:
+        conn = svc.history._conn  # the store's own connection
+        assert conn.execute("PRAGMA synchronous").fetchone()[0] == pragma
+    finally:
+        svc.twin.close()
+        svc.history.close()
+
+
+@pytest.mark.parametrize("kind, worker, expected", [
+    ("opcua", "auto", "process"), ("hydraulic", "auto", None), ("opcua", "thread", None),
+    ("hydraulic", "process", "process")])
+def test_model_worker_picks_the_reidentification_worker(kind, worker, expected):
+    from kautztwin.service import TwinService
+
+    over = {"plant.kind": kind, "model.worker": worker, "service.out": "/tmp/unused"}
+    if kind == "opcua":
+        over["plant.endpoint"] = "opc.tcp://127.0.0.1:4840"
+    svc = TwinService(load_service_config(None, over))
+    cfg = svc._twin_config("hydraulic", 0.02, ())
+    assert cfg.updater.get("worker") == expected
 
 
 def test_missing_config_file_is_exit_2(capsys, tmp_path):
@@ -282,10 +339,11 @@ def test_end_to_end_sync_fit_after_each_recovery_window(tmp_path):
     first drift), 0 constraint violations.
 
     In the slow set: the windows start at the closed-loop start, once the twin has caught
-    up with the samples queued while it identified (as the report's do); on the shared
-    2-core machine it passed 2 of 7 runs: the loop still falls behind the x10 plant while
-    the background worker runs, holds its input, and windows with a flat output miss 95 %
-    (issue #11 stays open on this line; docs/service.md has the figures).
+    up with the samples queued while it identified (as the report's do).  On the shared
+    2-core machine it passed 3 of the last 10 runs (load 3.4 to 4.9): stalls of the sample
+    loop (the synchronous pole re-optimisation on a resync) and bursts of the starved plant
+    server still leave windows with a flat output below 95 % (issue #11 stays open on this
+    line; docs/service.md has the figures).
     """
     metrics, segments, figures = _end_to_end_run(tmp_path)
     assert all(segments) and all(min(f) >= 95.0 for f in segments), figures

@@ -80,6 +80,10 @@ SCHEMA: dict[str, dict[str, tuple[Any, Any, str]]] = {
         "static_twin": (bool, False, "also run the static twin (updates disabled)"),
         "retune": (bool, True, "run the optimization module (weight retuning)"),
         "background": (bool, None, "re-identify and retune in worker threads (default: on)"),
+        "worker": (str, "auto", "where a background re-identification runs: thread, process "
+                   "or auto (a process for an OPC UA or MQTT plant, else a thread)"),
+        "retune_poles": (bool, None, "re-optimise the poles on a resync (synchronous, in the "
+                         "sample loop; default: on)"),
         "commit_every": (int, None, "samples per history transaction"),
         "recovery_window": (float, None, "recovery window after each drift event, s"),
     },
@@ -103,6 +107,9 @@ SCHEMA: dict[str, dict[str, tuple[Any, Any, str]]] = {
     "history": {
         "path": (str, None, "SQLite history (default: OUT/history.sqlite)"),
         "resume": (bool, True, "resume an unfinished run with the same configuration"),
+        "synchronous": (str, "normal", "SQLite commit durability: normal (survives a killed "
+                        "process; no fsync per commit) or full (also a power cut; one fsync "
+                        "per commit)"),
     },
     "logging": {
         "level": (str, "info", "debug, info, warning or error"),
@@ -307,6 +314,15 @@ class ServiceConfig:
             raise DataError(f"plant.on_outage must be hold or safe, got {p['on_outage']!r}")
         if p["on_outage"] == "safe" and p["safe_input"] is None:
             raise DataError("plant.on_outage = safe needs plant.safe_input")
+        m = self.values["model"]
+        m["worker"] = str(m["worker"]).strip().lower()
+        if m["worker"] not in ("auto", "thread", "process"):
+            raise DataError(f"model.worker must be auto, thread or process, got {m['worker']!r}")
+        hist = self.values["history"]
+        hist["synchronous"] = str(hist["synchronous"]).strip().lower()
+        if hist["synchronous"] not in ("normal", "full"):
+            raise DataError(f"history.synchronous must be normal or full, got "
+                            f"{hist['synchronous']!r}")
         log = self.values["logging"]
         if log["level"].lower() not in _LEVELS:
             raise DataError(f"logging.level must be one of {', '.join(_LEVELS)}, "

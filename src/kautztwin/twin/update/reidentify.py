@@ -8,7 +8,7 @@ poles and coefficients on the recent window
 predicts held-out recent data better than the current model.  A trained DNN
 estimator (any object with ``predict_models``) or
 :func:`kautztwin.optimize_poles` turns a step test into a model
-(:meth:`Updater.update_from_step_test`).  The background worker thread of the
+(:meth:`Updater.update_from_step_test`).  The background worker (thread or process) of the
 accurate path lives in :mod:`.worker`.
 
 Every accepted model is a new :class:`~kautztwin.twin.DigitalModel` version.
@@ -43,7 +43,7 @@ from ..digital import DigitalModel, discretize_model
 from ..physical.sanitize import SampleFlag, SampleSanitizer
 from .recursive import RecursiveKautzEstimator
 from .sync import SyncEvent, SyncMonitor, _finite_or_nan
-from .worker import _ReidJob, _ReidWorker
+from .worker import WORKER_KINDS, _ReidJob, _ReidWorker
 
 __all__ = ["ModelUpdate", "UpdateResult", "Updater"]
 
@@ -321,6 +321,12 @@ class Updater:
         then depends on wall-clock time: keep it off wherever runs must be
         reproducible.  Call :meth:`close` (or use the updater as a context
         manager) to stop the worker.
+    worker : {'thread', 'process'}, default='thread'
+        Where a background fit runs: a worker thread, or a worker process
+        (started with ``forkserver``, at a lower CPU priority) that takes
+        neither the sampling loop's GIL nor its CPU time first - for a live
+        plant whose samples must be taken as they come.  The candidate is the
+        same function of the frozen window either way.
     min_rate : float, optional
         Slowest pole rate the re-identification may choose, 1/s (see
         :func:`identify_output_error`).
@@ -472,6 +478,7 @@ class Updater:
         min_rate: float | None = None,
         max_iter: int = 30,
         background: bool = False,
+        worker: str = "thread",
         history: Any = None,
         run_id: int | None = None,
     ) -> None:
@@ -558,7 +565,12 @@ class Updater:
         if not isinstance(background, bool | np.bool_):
             raise DataError(f"background must be True or False, got {background!r}")
         self.background = bool(background)
-        self._worker = _ReidWorker()
+        if worker not in WORKER_KINDS:
+            raise DataError(f"worker must be 'thread' or 'process', got {worker!r}")
+        self.worker = worker
+        self._worker = _ReidWorker(worker)
+        if self.background and worker == "process":
+            self._worker.prestart()  # the interpreter starts while the twin runs
         if history is not None and run_id is None:
             raise DataError("run_id is required with history")
         self.history = history
@@ -868,7 +880,7 @@ class Updater:
                 None, math.nan, math.nan, math.nan, None, k_submitted=job.k,
             )
         try:
-            out = p.future.result()
+            out = self._worker.result(p)
         except (KautzTwinError, ValueError, ArithmeticError) as exc:
             return self._finish(
                 "reidentification", time.perf_counter(), False,

@@ -1,24 +1,47 @@
-"""Background worker of the update module's accurate path: one fit in a worker thread.
+"""Background worker of the update module's accurate path: one fit in a worker thread or process.
 
 A re-identification attempt is frozen into a :class:`_ReidJob` (a copy of the
 data window and the current poles); :func:`_fit_window` computes its
 candidate, a pure function of the job.  :class:`_ReidWorker` owns the single
-worker thread and the attempt in flight (:class:`_Pending`): it submits a
-job, marks it stale (and asks the fit to stop between its starts) when the
-twin moves on, and hands a finished attempt back to the
+worker (a thread, or a process) and the attempt in flight (:class:`_Pending`):
+it submits a job, marks it stale (and asks the fit to stop between its starts)
+when the twin moves on, and hands a finished attempt back to the
 :class:`~kautztwin.twin.update.Updater`, which judges it.
+
+**Process worker** (``kind='process'``, ``Updater(worker='process')``): the fit
+runs in one child process started with the ``forkserver`` method (``spawn``
+where that is missing; never ``fork``: the parent runs threads, e.g. a network
+link's client), at a lower CPU priority (``nice`` +5), so that it takes neither
+the parent's GIL nor CPU time the sampling loop needs first.  The job and its
+outcome are pickled (numpy arrays, floats, an
+:class:`~kautztwin.ident.kautz_oe.OutputErrorFit`); the result is the same
+function of the job as in a thread.  A stale attempt is not interrupted between
+its starts (its result is dropped as in a thread).  The child is started when
+the worker is created (:meth:`_ReidWorker.prestart`), so that the first attempt
+does not wait for an interpreter to start.
 """
 
 from __future__ import annotations
 
+import multiprocessing
+import os
 import threading
 import time
-from concurrent.futures import CancelledError, Future, ThreadPoolExecutor
+from concurrent.futures import (
+    CancelledError,
+    Executor,
+    Future,
+    ProcessPoolExecutor,
+    ThreadPoolExecutor,
+)
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from ...approx.model import KautzModel
+from ...basis import KautzBasis
 from ...ident.kautz_oe import OutputErrorFit, identify_output_error
 
 
@@ -74,6 +97,35 @@ def _fit_window(job: _ReidJob, cancel: threading.Event | None = None) -> _ReidOu
     return _ReidOutcome(best, time.perf_counter() - start)
 
 
+def _fit_window_portable(job: _ReidJob) -> tuple[Any, ...]:
+    """:func:`_fit_window` in a worker process, its outcome as plain, picklable values.
+
+    A :class:`~kautztwin.basis.KautzBasis` does not pickle (it is immutable);
+    its block kinds and parameters do, and rebuild it exactly
+    (:func:`_from_portable`).
+    """
+    out = _fit_window(job)
+    fit = out.fit
+    if fit is None:  # pragma: no cover - no cancel event in a process
+        return (None, out.elapsed)
+    b = fit.model.basis
+    return ((b._kinds, np.asarray(b._params), b._dt, b._delayed,
+             np.asarray(fit.model.coefficients), fit.offset, fit.input_offset,
+             fit.fit_percent, fit.n_evaluations, fit.success, fit.message), out.elapsed)
+
+
+def _from_portable(value: tuple[Any, ...]) -> _ReidOutcome:
+    """The :class:`_ReidOutcome` of :func:`_fit_window_portable`'s values (bit for bit)."""
+    plain, elapsed = value
+    if plain is None:  # pragma: no cover
+        return _ReidOutcome(None, elapsed)
+    kinds, params, dt, delayed, coef, offset, input_offset, fit_percent, n_eval, ok, msg = plain
+    basis = KautzBasis._from_blocks(tuple(kinds), params, dt, delayed)
+    fit = OutputErrorFit(KautzModel(basis, coef), offset, input_offset, fit_percent, n_eval,
+                         ok, msg)
+    return _ReidOutcome(fit, elapsed)
+
+
 @dataclass
 class _Pending:
     """A background attempt in flight."""
@@ -90,17 +142,63 @@ def _scaled_poles(poles: NDArray[np.complex128], scale: float) -> NDArray[np.com
     return np.asarray([complex(p.real * scale, p.imag) for p in poles])
 
 
-class _ReidWorker:
-    """The single worker thread of the background accurate path and its attempt in flight.
+#: niceness added to the process worker (it yields the CPU to the sampling loop)
+PROCESS_NICE = 5
+WORKER_KINDS = ("thread", "process")
 
-    At most one attempt is in flight (:attr:`pending`).  The thread is started
-    at the first :meth:`submit` and stopped by :meth:`close`.
+
+def _process_init() -> None:
+    """Start-up of the worker process: a lower CPU priority (best effort)."""
+    try:
+        os.nice(PROCESS_NICE)
+    except OSError:  # pragma: no cover - not permitted: keep the priority
+        pass
+
+
+def _ready() -> bool:
+    """A no-op job: the worker process has started and imported this module."""
+    return True
+
+
+def _process_context() -> multiprocessing.context.BaseContext:
+    methods = multiprocessing.get_all_start_methods()
+    return multiprocessing.get_context("forkserver" if "forkserver" in methods else "spawn")
+
+
+class _ReidWorker:
+    """The single worker (thread or process) of the background accurate path and its attempt.
+
+    At most one attempt is in flight (:attr:`pending`).  The worker is started
+    at the first :meth:`submit` (or by :meth:`prestart`) and stopped by :meth:`close`.
+
+    Parameters
+    ----------
+    kind : {'thread', 'process'}, default='thread'
+        Where the fit runs (see the module notes).
     """
 
-    def __init__(self) -> None:
-        self._executor: ThreadPoolExecutor | None = None
+    def __init__(self, kind: str = "thread") -> None:
+        if kind not in WORKER_KINDS:
+            raise ValueError(f"kind must be 'thread' or 'process', got {kind!r}")
+        self.kind = kind
+        self._executor: Executor | None = None
         self.pending: _Pending | None = None
         self.closed = False
+
+    def _start(self) -> Executor:
+        if self._executor is None:
+            if self.kind == "process":
+                self._executor = ProcessPoolExecutor(
+                    max_workers=1, mp_context=_process_context(), initializer=_process_init)
+            else:
+                self._executor = ThreadPoolExecutor(
+                    max_workers=1, thread_name_prefix="kautztwin-reidentify")
+        return self._executor
+
+    def prestart(self) -> None:
+        """Start the worker now (a process: its interpreter starts in the background)."""
+        if not self.closed:
+            self._start().submit(_ready)
 
     @staticmethod
     def fit_now(job: _ReidJob) -> _ReidOutcome:
@@ -108,14 +206,14 @@ class _ReidWorker:
         return _fit_window(job)
 
     def submit(self, job: _ReidJob) -> None:
-        """Start ``job`` in the worker thread (the caller checked that none is pending)."""
-        if self._executor is None:
-            self._executor = ThreadPoolExecutor(
-                max_workers=1, thread_name_prefix="kautztwin-reidentify"
-            )
+        """Start ``job`` in the worker (the caller checked that none is pending)."""
+        executor = self._start()
         cancel = threading.Event()
-        # looked up at call time, so that tests can slow the fit down
-        future = self._executor.submit(_fit_window, job, cancel)
+        # looked up at call time, so that tests can slow the fit down (thread worker)
+        if self.kind == "process":  # an Event does not cross processes
+            future = executor.submit(_fit_window_portable, job)
+        else:
+            future = executor.submit(_fit_window, job, cancel)
         self.pending = _Pending(job, future, cancel)
 
     def make_stale(self, reason: str) -> None:
@@ -133,6 +231,11 @@ class _ReidWorker:
             return None
         self.pending = None
         return p
+
+    def result(self, pending: _Pending) -> _ReidOutcome:
+        """The outcome of a finished attempt (its exception raised, as ``Future.result``)."""
+        out = pending.future.result()
+        return _from_portable(out) if self.kind == "process" else out
 
     def cancel(self, reason: str) -> bool:
         """Make the attempt in flight stale; whether one was in flight (and not stale yet)."""
@@ -154,7 +257,11 @@ class _ReidWorker:
         return True
 
     def close(self) -> None:
-        """Cancel the attempt in flight and join the thread (idempotent)."""
+        """Cancel the attempt in flight and join the worker (idempotent).
+
+        A process worker finishes a fit it has started (at most about a second)
+        before it exits.
+        """
         self.closed = True
         if self.pending is not None:
             self.make_stale("the updater was closed")
