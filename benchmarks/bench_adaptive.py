@@ -8,12 +8,16 @@ it trains an :class:`~kautztwin.nn.adaptive.AdaptivePoleEstimator` on freshly
 simulated records and then compares, on fresh test records, the fit percent of
 each method's noise-free estimate against the noise-free truth:
 
-* ``adaptive``: the network (poles) + least squares (coefficients), batched
-  (:meth:`~kautztwin.nn.adaptive.AdaptivePoleEstimator.predict_responses`: network in
-  float32, basis and least squares in float64, exactly what ``predict`` returns);
-* ``adaptive_float32``: the same with the basis and least squares in float32 too
-  (the fitted responses agree with ``adaptive`` to about 1e-6 relative);
-* ``adaptive_refine``: the same, then :func:`kautztwin.optimize_poles` per record;
+* ``adaptive``: the network (poles) + least squares (coefficients) under the relative
+  degree read from the training records (``relative_degree='auto'``: 4 for this system,
+  which has no zeros), batched
+  (:meth:`~kautztwin.nn.adaptive.AdaptivePoleEstimator.predict_responses`: network, basis
+  and least squares in float64, exactly what ``predict`` returns);
+* ``adaptive_float32``: the same with the basis and least squares in float32 (the
+  network stays float64; the fitted responses agree with ``adaptive`` to about 1e-6
+  relative);
+* ``adaptive_refine``: the same, then a variable-projection refinement of the poles per
+  record under the same constraint;
 * ``oracle``: least squares in the true model structure started at the true
   parameters (:func:`kautztwin.nn.oracle.oracle_fit`): the statistical limit;
 * ``fixed_basis_ceiling``: the noise-free truth projected onto the nominal
@@ -31,7 +35,18 @@ distort the oracle's time.
 
 Usage::
 
-    python benchmarks/bench_adaptive.py [--quick] [--out benchmarks/results/adaptive.json]
+    python benchmarks/bench_adaptive.py [--quick] [--sweep] [--out benchmarks/results/adaptive.json]
+
+``--sweep`` adds the uncertainty x noise grid of ``kautztwin reproduce simulation``
+(uncertainty 0, 10, 25, 50 %; noise 0, 1, 5, 10 %): at each noise level the estimator
+trained on +-50 % records (the main case's at 10 % and 1 %, else one on 8 000 records, as
+the reproduction trains them) against the oracle on 200 fresh records per cell, with the
+acceptance gap of 0.2 points.  A run can be split over processes (one noise level each) and
+merged::
+
+    python benchmarks/bench_adaptive.py --noises 0.1 --sweep --sweep-noises 0.1 --out a.json
+    python benchmarks/bench_adaptive.py --noises --sweep --sweep-noises 0.05 --out b.json
+    python benchmarks/bench_adaptive.py --merge a.json b.json --out results/adaptive.json
 """
 
 from __future__ import annotations
@@ -64,18 +79,34 @@ N_SAMPLES = 900
 T_END = 20.0
 UNCERTAINTY = 0.5
 NOISES = (0.1, 0.01)
-#: acceptance: largest allowed gap (fit points) between the oracle's and adaptive's mean fit
-GAP_LIMIT = {0.1: 1.0, 0.01: 0.2}
+#: acceptance (issue #14): largest allowed gap (fit points) between the oracle's and
+#: adaptive's mean fit, at every noise level (it was 1.0 at 10 % noise before)
+GAP_LIMIT = 0.2
 SPEEDUP_LIMIT = 100.0
+#: the sweep of ``kautztwin reproduce simulation`` (``--sweep``), and its acceptance
+SWEEP_UNCERTAINTIES = (0.0, 0.1, 0.25, 0.5)
+SWEEP_NOISES = (0.0, 0.01, 0.05, 0.1)
+SWEEP_GAP_LIMIT = GAP_LIMIT
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "adaptive.json"
-FULL = {"n_train": 20000, "n_test": 1000, "estimator": {}}
+#: the full run trains for up to 12 epochs per stage (the estimator's default is 6): at 10 %
+#: noise the fit still improves after 6 epochs, and the gap to the oracle is what is measured
+FULL = {
+    "n_train": 20000,
+    "n_test": 1000,
+    "sweep_train": 8000,
+    "n_sweep": 200,
+    "estimator": {"config": {"max_epochs": 12}, "relative_degree": "auto"},
+}
 QUICK = {
     "n_train": 3000,
     "n_test": 200,
+    "sweep_train": 1000,
+    "n_sweep": 20,
     "estimator": {
         "hidden": (128, 128),
         "pretrain_epochs": 10,
         "config": {"max_epochs": 2},
+        "relative_degree": "auto",
     },
 }
 METHODS = (
@@ -122,16 +153,77 @@ def _oracle(t: np.ndarray, H: np.ndarray, system: Any, P: np.ndarray) -> np.ndar
     return np.array([oracle_fit(t, y, system, p).response for y, p in zip(H, P, strict=True)])
 
 
-def run_case(noise: float, settings: dict[str, Any], seed: int) -> dict[str, Any]:
+def _train(noise: float, n_train: int, settings: dict[str, Any], seed: int) -> tuple[Any, float]:
+    """An estimator trained at one noise level on +-50 % records, and its training seconds."""
+    t = np.linspace(0.0, T_END, N_SAMPLES)
+    est = AdaptivePoleEstimator(random_state=seed, **settings["estimator"])
+    start = time.perf_counter()
+    est.fit_distribution(paper_system(), UNCERTAINTY, t, noise=noise, n_train=n_train)
+    return est, time.perf_counter() - start
+
+
+def run_sweep(
+    estimators: dict[float, Any],
+    settings: dict[str, Any],
+    seed: int,
+    noises: tuple[float, ...] = SWEEP_NOISES,
+) -> list[dict[str, Any]]:
+    """Adaptive against the oracle in every cell of the uncertainty x noise sweep.
+
+    The grid and the protocol of ``kautztwin reproduce simulation``: at each noise level one
+    estimator trained on +-50 % records (the main case's where it has one, else one trained
+    on ``sweep_train`` records) is applied to test records of every uncertainty.
+    """
+    system = paper_system()
+    t = np.linspace(0.0, T_END, N_SAMPLES)
+    nominal = kt.KautzBasis(system.poles())
+    cells = []
+    for noise in noises:
+        trained_here = noise not in estimators
+        if trained_here:
+            estimators[noise], train_s = _train(noise, settings["sweep_train"], settings, seed)
+        est = estimators[noise]
+        for unc in SWEEP_UNCERTAINTIES:
+            P = draw_parameters(system, unc, settings["n_sweep"], random_state=seed + 3000)
+            data = make_dataset(system, P, nominal, t, noise=noise, random_state=seed + 4000)
+            est.predict_responses(data.responses[:64])  # warm-up
+            y_ad, s_ad = timed(lambda est=est, data=data: est.predict_responses(data.responses))
+            y_or, s_or = timed(lambda data=data, P=P: _oracle(t, data.responses, system, P))
+            f_ad = float(np.mean(kt.fit_percent(data.clean, y_ad)))
+            f_or = float(np.mean(kt.fit_percent(data.clean, y_or)))
+            cell = {
+                "uncertainty": unc,
+                "noise": noise,
+                "n_records": settings["n_sweep"],
+                "n_train": settings["sweep_train"] if trained_here else settings["n_train"],
+                "adaptive": f_ad,
+                "oracle": f_or,
+                "gap": f_or - f_ad,
+                "gap_limit": SWEEP_GAP_LIMIT,
+                "gap_met": bool(f_or - f_ad <= SWEEP_GAP_LIMIT),
+                "speedup_vs_oracle": s_or / s_ad,
+            }
+            cells.append(cell)
+            print(
+                f"sweep uncertainty {unc:4.0%} noise {noise:4.0%}: adaptive {f_ad:7.3f} "
+                f"oracle {f_or:7.3f} gap {f_or - f_ad:6.3f} "
+                f"({'met' if cell['gap_met'] else 'NOT met'}), {s_or / s_ad:5.0f}x",
+                flush=True,
+            )
+    return cells
+
+
+def run_case(
+    noise: float, settings: dict[str, Any], seed: int, estimators: dict[float, Any] | None = None
+) -> dict[str, Any]:
     """Train at one noise level and compare every method on fresh test records."""
     system = paper_system()
     t = np.linspace(0.0, T_END, N_SAMPLES)
     nominal = kt.KautzBasis(system.poles())
 
-    est = AdaptivePoleEstimator(random_state=seed, **settings["estimator"])
-    start = time.perf_counter()
-    est.fit_distribution(system, UNCERTAINTY, t, noise=noise, n_train=settings["n_train"])
-    train_seconds = time.perf_counter() - start
+    est, train_seconds = _train(noise, settings["n_train"], settings, seed)
+    if estimators is not None:
+        estimators[noise] = est
 
     P = draw_parameters(system, UNCERTAINTY, settings["n_test"], random_state=seed + 1000)
     test = make_dataset(system, P, nominal, t, noise=noise, random_state=seed + 2000)
@@ -174,7 +266,7 @@ def run_case(noise: float, settings: dict[str, Any], seed: int) -> dict[str, Any
     oracle_s = methods["oracle"]["seconds_per_record"]
     speedup = oracle_s / methods["adaptive"]["seconds_per_record"]
     speedup32 = oracle_s / methods["adaptive_float32"]["seconds_per_record"]
-    limit = GAP_LIMIT[noise]
+    limit = GAP_LIMIT
     return {
         "noise": noise,
         "n_train": settings["n_train"],
@@ -184,6 +276,7 @@ def run_case(noise: float, settings: dict[str, Any], seed: int) -> dict[str, Any
         "training_seconds_network": est.training_seconds_,
         "stage_val_fit": [100.0 * (1.0 - h.best_loss) for h in est.histories_],
         "n_parameters": est.n_parameters_,
+        "relative_degree_fitted": est.relative_degree_,
         "estimator": {k: v for k, v in est.get_params().items() if k != "config"},
         "config": est.config_.to_dict(),
         "methods": methods,
@@ -229,6 +322,28 @@ def _print_table(cases: list[dict[str, Any]]) -> None:
         )
 
 
+def _merge(paths: list[Path], out: Path) -> int:
+    """One result from the parts of a run split over processes (same settings and seed)."""
+    import json
+
+    parts = [json.loads(p.read_text()) for p in paths]
+    merged = dict(parts[0])
+    merged["command"] = "bench_adaptive.py, merged from " + ", ".join(
+        str(p["command"]) for p in parts
+    )
+    merged["cases"] = sorted(
+        (c for p in parts for c in p["cases"]), key=lambda c: -c["noise"]
+    )
+    cells = [c for p in parts for c in (p.get("sweep") or [])]
+    merged["sweep"] = sorted(cells, key=lambda c: (c["noise"], c["uncertainty"])) or None
+    merged["elapsed_s"] = max(p["elapsed_s"] for p in parts)
+    merged["parts"] = [{"command": p["command"], "machine": p["machine"]} for p in parts]
+    write_json(out, merged)
+    _print_table(merged["cases"])
+    print(f"merged {len(paths)} parts into {out}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument(
@@ -238,16 +353,38 @@ def main(argv: list[str] | None = None) -> int:
         "--out", type=Path, default=DEFAULT_OUT, help="JSON file (default: results/adaptive.json)"
     )
     parser.add_argument("--seed", type=int, default=0, help="seed of training and test data")
+    parser.add_argument(
+        "--sweep", action="store_true",
+        help="also compare adaptive with the oracle over the uncertainty x noise sweep",
+    )
+    parser.add_argument(
+        "--noises", type=float, nargs="*", default=None, metavar="NOISE",
+        help=f"main cases to run (default: all of {NOISES}); with --sweep-noises, one part "
+        "of a run split over processes (merge the parts with --merge)",
+    )
+    parser.add_argument(
+        "--sweep-noises", type=float, nargs="*", default=None, metavar="NOISE",
+        help=f"noise levels of the sweep to run (default: all of {SWEEP_NOISES})",
+    )
+    parser.add_argument(
+        "--merge", type=Path, nargs="+", default=None, metavar="JSON",
+        help="merge the JSON files of a run split over processes into --out and exit",
+    )
     args = parser.parse_args(argv)
+    if args.merge:
+        return _merge(args.merge, args.out)
     torch.set_num_threads(1)
     settings = QUICK if args.quick else FULL
 
     machine = machine_info()
     started = time.perf_counter()
     cases = []
-    for noise in NOISES:
-        cases.append(run_case(noise, settings, args.seed))
+    estimators: dict[float, Any] = {}
+    for noise in NOISES if args.noises is None else args.noises:
+        cases.append(run_case(noise, settings, args.seed, estimators))
         _print_table(cases[-1:])
+    sweep_noises = SWEEP_NOISES if args.sweep_noises is None else tuple(args.sweep_noises)
+    sweep = run_sweep(estimators, settings, args.seed, sweep_noises) if args.sweep else None
     result = benchmark_result(
         "adaptive",
         argv,
@@ -263,9 +400,17 @@ def main(argv: list[str] | None = None) -> int:
             "timer": "time.perf_counter over all test records of one method, after a warm-up",
             "n_train": settings["n_train"],
             "n_test": settings["n_test"],
+            "sweep": {
+                "uncertainties": SWEEP_UNCERTAINTIES,
+                "noises": SWEEP_NOISES,
+                "n_records_per_cell": settings["n_sweep"],
+                "n_train_other_noises": settings["sweep_train"],
+                "gap_limit": SWEEP_GAP_LIMIT,
+            } if args.sweep else None,
         },
         machine=machine,
         cases=cases,
+        sweep=sweep,
         elapsed_s=time.perf_counter() - started,
     )
     write_json(args.out, result)

@@ -8,17 +8,21 @@ save/load round trips.
 
 from __future__ import annotations
 
+import copy
 import json
 
 import numpy as np
 import pytest
+import scipy.linalg
+import scipy.signal
 import torch
 
 import kautztwin as kt
+from kautztwin.basis._blocks import parse_poles
 from kautztwin.datasets import draw_parameters, make_dataset, paper_system
 from kautztwin.exceptions import DataError, DimensionError, NotFittedError
 from kautztwin.nn.adaptive import AdaptivePoleEstimator, AdaptivePoleNetwork
-from kautztwin.nn.adaptive.training import _match_labels
+from kautztwin.nn.adaptive.training import _match_labels, resolve_relative_degree
 from kautztwin.nn.oracle import oracle_fit, simulate_parametric
 
 torch.set_num_threads(1)
@@ -36,7 +40,8 @@ SMALL = {
 
 @pytest.fixture(scope="module")
 def fitted():
-    est = AdaptivePoleEstimator(**SMALL, random_state=0)
+    # the constraint explicitly: with 'auto' a network this small may fit without it
+    est = AdaptivePoleEstimator(**SMALL, random_state=0, relative_degree=4)
     return est.fit_distribution(SYSTEM, 0.5, T, noise=0.05, n_train=1500)
 
 
@@ -66,8 +71,33 @@ def test_predictions_reconstruct_with_the_numpy_core(fitted, test_data):
         np.testing.assert_allclose(model.impulse(T), yhat[k], rtol=0, atol=1e-12)
 
 
-def test_coefficients_are_least_squares_on_the_predicted_basis(fitted, test_data):
+def test_relative_degree_is_read_from_the_training_records(fitted):
+    # the paper's system k/((s+a)(s+b)(s^2+2 zeta wn s+wn^2)) has no zeros: relative degree 4
+    assert fitted.relative_degree_ == 4
+    assert fitted.get_params()["relative_degree"] == 4
+
+
+def test_coefficients_are_constrained_least_squares_on_the_predicted_basis(fitted, test_data):
+    # oracle: least squares over the null space (scipy) of the Markov parameters c^T A^k B,
+    # k < 3, of the numpy core's realisation of the predicted basis
     poles, coef = fitted.predict(test_data.responses[:3])
+    for k in range(3):
+        basis = kt.KautzBasis(poles[k])
+        K = basis.evaluate(T)
+        A, B = basis.state_space()[:2]
+        N = scipy.linalg.null_space(np.stack([B, A @ B, A @ A @ B]))
+        ref = N @ np.linalg.lstsq(K.T @ N, test_data.responses[k], rcond=None)[0]
+        np.testing.assert_allclose(coef[k], ref, rtol=0, atol=1e-10)
+        # the fitted model has relative degree 4: a numerator of degree 0 (scipy's zpk)
+        num, den = scipy.signal.ss2tf(A, B[:, None], coef[k][None, :], [[0.0]])
+        assert np.max(np.abs(num[0][:-1])) <= 1e-9 * np.max(np.abs(num[0]))
+        assert abs(num[0][-1]) > 1e-3
+
+
+def test_unconstrained_coefficients_are_least_squares_on_the_predicted_basis(fitted, test_data):
+    free = copy.deepcopy(fitted)
+    free.relative_degree_ = 1  # the plain least squares (relative_degree=1)
+    poles, coef = free.predict(test_data.responses[:3])
     for k in range(3):
         K = kt.KautzBasis(poles[k]).evaluate(T)
         ref = np.linalg.lstsq(K.T, test_data.responses[k], rcond=None)[0]
@@ -185,6 +215,79 @@ def test_step_records():
     np.testing.assert_allclose(model.step(T), est.predict_responses(data)[0], rtol=0, atol=1e-10)
 
 
+@pytest.mark.parametrize(
+    ("zeros", "expected"), [([], 4), ([-2.0], 3), ([-2.0, -0.7], 2), ([-2.0, -0.7, -5.0], 1)]
+)
+def test_auto_relative_degree_is_poles_minus_zeros(zeros, expected):
+    # oracle: the relative degree of k prod(s - z) / prod(s - p) is #poles - #zeros
+    system = kt.datasets.ParametricSystem.from_zpk(zeros, SYSTEM.poles(), 6.0)
+    data = make_dataset(system, draw_parameters(system, 0.3, 30, random_state=2), NOMINAL, T)
+    kinds, centre = parse_poles(NOMINAL.poles, 0.0)
+    labels, valid = _match_labels(kinds, centre, np.asarray(data.poles))
+    assert valid.all()
+    got = resolve_relative_degree("auto", kinds, T, data.clean, "impulse", labels, valid)
+    assert got == expected
+    step = make_dataset(system, draw_parameters(system, 0.3, 5, random_state=3), NOMINAL, T,
+                        kind="step")
+    labels, valid = _match_labels(kinds, centre, np.asarray(step.poles))
+    assert resolve_relative_degree("auto", kinds, T, step.clean, "step", labels, valid) == expected
+    # no record whose poles fit the structure: no constraint
+    assert resolve_relative_degree("auto", kinds, T, data.clean, "impulse", labels,
+                                   np.zeros_like(valid)) == 1
+
+
+def test_auto_keeps_the_constraint_only_where_the_poles_are_precise():
+    # an untrained network predicts the centre poles; records of the nominal system (whose
+    # poles are the centre) are fitted better with the constraint, records under +-50 %
+    # uncertainty (centre poles far off) better without it
+    est = AdaptivePoleEstimator(hidden=(4,), n_features=4, n_stages=1, pretrain_epochs=0,
+                                config={"max_epochs": 1, "learning_rate": 1e-12},
+                                relative_degree="auto")
+    nominal = make_dataset(SYSTEM, np.tile(SYSTEM.nominal, (60, 1)), NOMINAL, T, noise=0.1,
+                           random_state=4)
+    wide = make_dataset(SYSTEM, draw_parameters(SYSTEM, 0.5, 60, random_state=5), NOMINAL, T,
+                        noise=0.01, random_state=6)
+    assert est.fit(nominal).relative_degree_ == 4
+    assert est.fit(wide).relative_degree_ == 1
+    assert est.network_.relative_degree == 4  # the stages keep the degree they trained with
+    assert AdaptivePoleEstimator(**{**est.get_params(), "relative_degree": 4}).fit(
+        wide).relative_degree_ == 4  # an explicit degree is kept
+    # the default is the unconstrained fit
+    assert AdaptivePoleEstimator(hidden=(4,), n_features=4, n_stages=1, pretrain_epochs=0,
+                                 config={"max_epochs": 1, "learning_rate": 1e-12}).fit(
+        nominal).relative_degree_ == 1
+
+
+def test_relative_degree_option_is_used_and_kept_by_files(tmp_path):
+    data = make_dataset(SYSTEM, draw_parameters(SYSTEM, 0.3, 40, random_state=0), NOMINAL, T,
+                        noise=0.05, random_state=1)
+    est = AdaptivePoleEstimator(hidden=(8,), n_features=4, pretrain_epochs=0,
+                                config={"max_epochs": 1}, relative_degree=2).fit(data)
+    assert est.relative_degree_ == 2
+    loaded = AdaptivePoleEstimator.load(est.save(tmp_path / "m"))
+    assert loaded.relative_degree_ == 2 and loaded.relative_degree == 2
+    np.testing.assert_array_equal(loaded.predict(data)[1], est.predict(data)[1])
+    # a file written before the option (no relative_degree in its architecture) loads as 1
+    meta = json.loads((tmp_path / "m" / "metadata.json").read_text())
+    del meta["architecture"]["relative_degree"], meta["fit_relative_degree"]
+    from kautztwin.nn.model_files import save_verified  # rewrite with valid checksums
+
+    state = torch.load(tmp_path / "m" / "weights.pt", weights_only=True)
+    header = ("format", "format_version", "kautztwin_version", "torch_version", "time_grid",
+              "weights", "metadata_sha256")
+    fields = {k: v for k, v in meta.items() if k not in header}
+    save_verified(tmp_path / "old", meta["format"], meta["format_version"], state,
+                  np.asarray(est.t_), fields)
+    assert AdaptivePoleEstimator.load(tmp_path / "old").relative_degree_ == 1
+
+
+def test_network_is_kept_in_float64_and_fine_tunes_in_float32(fitted, test_data):
+    assert fitted.network_.dtype == torch.float64
+    tuned = fitted.fine_tune(test_data, config={"max_epochs": 1})
+    assert tuned.network_.dtype == torch.float64 and fitted.network_.dtype == torch.float64
+    assert tuned.relative_degree_ == fitted.relative_degree_
+
+
 # --------------------------------------------------------------------------- files
 def test_save_load_round_trip(fitted, test_data, tmp_path):
     fitted.save(tmp_path / "m")
@@ -256,6 +359,9 @@ def test_not_fitted():
         ({"structure": ("real", "triple")}, "block kinds"),
         ({"structure": [0.5, -1.0]}, "structure"),
         ({"pretrain_epochs": -1}, "pretrain_epochs"),
+        ({"relative_degree": 0}, "relative_degree"),
+        ({"relative_degree": 5}, "at most the number of basis functions"),
+        ({"relative_degree": "max"}, "relative_degree"),
     ],
     ids=[
         "hidden",
@@ -267,6 +373,9 @@ def test_not_fitted():
         "kinds",
         "unstable",
         "pretrain",
+        "degree-0",
+        "degree-too-high",
+        "degree-text",
     ],
 )
 def test_invalid_options(option, match):
@@ -335,3 +444,14 @@ def test_close_to_the_oracle_at_one_percent_noise():
         for c, y, p in zip(data.clean, data.responses, P, strict=True)
     ]
     assert np.mean(oracle) - np.mean(adaptive) < 0.5
+
+
+def test_uncertainty_of_a_constrained_fit_is_lifted_to_the_coefficients(fitted, test_data):
+    # the Laplace covariance is computed in (poles, free coefficient directions) and lifted to
+    # (poles, Kautz coefficients); the band recomputed from the lifted covariance on the same
+    # grid (numpy core Jacobian, Kautz coefficient coordinates) must give the same std
+    res = fitted.estimate(test_data.responses[:2])
+    assert res.covariance.shape == (2, 8, 8)
+    for i in range(2):
+        band = res.impulse_band(i, t=T + 0.0)
+        np.testing.assert_allclose(band.std, res.std[i], rtol=1e-4, atol=1e-9 * res.std[i].max())

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import scipy.linalg
+import scipy.signal
 import torch
 
 import kautztwin as kt
@@ -20,6 +22,7 @@ from kautztwin.nn.kautz_torch import (
     n_functions,
     network_matrices,
     propagate,
+    relative_degree_constraints,
     response_weights,
 )
 
@@ -259,3 +262,79 @@ def test_gradcheck_projection_end_to_end():
         return torch.einsum("bi,bin->bn", c, K)
 
     assert torch.autograd.gradcheck(fitted, (P, h))
+
+
+# --------------------------------------------------------------------------- relative degree
+@pytest.mark.parametrize("name", ["paper", "two-pairs", "slow-pair"])
+def test_relative_degree_constraints_are_the_leading_markov_parameters(name):
+    # oracle: scipy's transfer function of (A, B, c) has a numerator of degree n - r exactly
+    # when c is orthogonal to the constraint columns
+    kinds, params = block_structure(POLE_SETS[name])
+    A, B = network_matrices(kinds, params[None])
+    n = B.shape[-1]
+    rng = np.random.default_rng(3)
+    for r in range(1, n + 1):
+        M = relative_degree_constraints(A, B, r)[0].numpy()
+        assert M.shape == (n, r - 1)
+        np.testing.assert_allclose(M.T @ M, np.eye(r - 1), rtol=0, atol=1e-12)
+        N = scipy.linalg.null_space(M.T) if r > 1 else np.eye(n)
+        c = N @ rng.standard_normal(N.shape[1])
+        num, _ = scipy.signal.ss2tf(A[0].numpy(), B[0].numpy()[:, None], c[None, :], [[0.0]])
+        num = num[0]
+        assert np.max(np.abs(num[: r])) <= 1e-9 * np.max(np.abs(num))  # leading r - 1 zeros
+        assert abs(num[r]) > 1e-6 * np.max(np.abs(num))  # and not one more
+
+
+def test_relative_degree_constraints_reject_bad_degrees():
+    A, B = network_matrices(("real", "real"), torch.tensor([[1.0, 2.0]], dtype=torch.float64))
+    for bad in (0, 3, 1.5, True):
+        with pytest.raises(DataError, match="relative_degree"):
+            relative_degree_constraints(A, B, bad)
+
+
+def test_constrained_lstsq_matches_null_space_least_squares():
+    # oracle: ordinary least squares over the null space of the constraints (numpy)
+    kinds, params = block_structure(POLE_SETS["paper"])
+    P = torch.as_tensor(_random_params(kinds, 3, 5))
+    K = kautz_functions(kinds, P, T)
+    A, B = network_matrices(kinds, P)
+    h = torch.as_tensor(np.random.default_rng(6).standard_normal((3, T.size)))
+    for r in (2, 3, 4):
+        M = relative_degree_constraints(A, B, r)
+        c = lstsq_coefficients(K, h, constraints=M, ridge=0.0).numpy()
+        for i in range(3):
+            N = scipy.linalg.null_space(M[i].numpy().T)
+            Ki = K[i].numpy()
+            ref = N @ np.linalg.lstsq(Ki.T @ N, h[i].numpy(), rcond=None)[0]
+            np.testing.assert_allclose(c[i], ref, rtol=0, atol=1e-10)
+    empty = relative_degree_constraints(A, B, 1)
+    np.testing.assert_array_equal(lstsq_coefficients(K, h, constraints=empty),
+                                  lstsq_coefficients(K, h))
+    with pytest.raises(DimensionError, match="constraints"):
+        lstsq_coefficients(K, h, constraints=M[:, :2])
+
+
+def test_gradcheck_constrained_projection():
+    kinds = ("pair", "real")
+    t = np.linspace(0.0, 6.0, 13)
+    h = torch.tensor(np.random.default_rng(13).standard_normal((2, t.size)))
+    P = torch.tensor([[0.6, 1.7, 1.1], [0.4, 0.9, 2.0]], dtype=torch.float64, requires_grad=True)
+
+    def fitted(p):
+        K = kautz_functions(kinds, p, t)
+        A, B = network_matrices(kinds, p)
+        c = lstsq_coefficients(K, h, constraints=relative_degree_constraints(A, B, 3))
+        return torch.einsum("bi,bin->bn", c, K)
+
+    assert torch.autograd.gradcheck(fitted, (P,))
+
+
+def test_propagate_without_gradient_equals_the_differentiable_path():
+    # prediction writes into one preallocated array; training concatenates: same products
+    kinds, _ = block_structure(POLE_SETS["two-pairs"])
+    P = torch.as_tensor(_random_params(kinds, 4, 8))
+    A, B = network_matrices(kinds, P)
+    with torch.no_grad():
+        fast = propagate(A, B, T)
+    slow = propagate(A.requires_grad_(True), B, T).detach()
+    assert torch.equal(fast, slow)

@@ -11,6 +11,7 @@ __all__ = [
     "ConvergenceWarning",
     "DataError",
     "DimensionError",
+    "ExportError",
     "KautzTwinError",
     "NotFittedError",
     "PoleError",
@@ -42,6 +43,10 @@ class UnstableModelError(PoleError):
 
 class NotFittedError(KautzTwinError, ValueError, AttributeError):
     """An estimator was used before ``fit`` was called."""
+
+
+class ExportError(KautzTwinError, RuntimeError):
+    """An export cannot be built here: no C compiler, or the compiler failed."""
 
 
 class TwinError(KautzTwinError, RuntimeError):

@@ -208,12 +208,55 @@ class Graph:
         return self.op("Div", self.op("Squeeze", self.slice(M, 2, n, n + 1), self.ints([2])),
                        diag)
 
+    def solve_spd_columns(self, G: str, rhs: str, n: int, k: int, dtype: Any) -> str:
+        """Solutions ``(b, n, k)`` of ``G X = rhs`` for SPD ``G (b, n, n)``, ``rhs (b, n, k)``.
+
+        :meth:`solve_spd` with ``k`` right-hand sides.
+        """
+        M = self.op("Concat", G, rhs, axis=2)
+        for j in range(n):
+            row = self.slice(M, 1, j, j + 1)  # (b, 1, n + k)
+            pivot = self.slice(row, 2, j, j + 1)  # (b, 1, 1)
+            col = self.slice(M, 2, j, j + 1)  # (b, n, 1)
+            mask = np.ones((n, 1))
+            mask[j] = 0.0
+            factor = self.op("Mul", self.op("Div", col, pivot), self.const(mask, dtype))
+            M = self.op("Sub", M, self.op("Mul", factor, row))
+        diag = self.op("ReduceSum", self.op("Mul", self.slice(M, 2, 0, n),
+                                            self.const(np.eye(n), dtype, "eye")),
+                       self.ints([2]), keepdims=1)
+        return self.op("Div", self.slice(M, 2, n, n + k), diag)
+
+    def relative_degree_constraints(self, layout: KautzLayout, params: str, relative_degree: int,
+                                    dtype: Any) -> str:
+        """Constraint columns ``(b, n, r - 1)`` of a relative degree ``r >= 2``.
+
+        :func:`kautztwin.nn.kautz_torch.relative_degree_constraints`: ``B, AB, ...``
+        orthonormalised by Gram-Schmidt.
+        """
+        A, beta = self.network_matrices(layout, params, dtype)
+        cols: list[str] = []
+        v = beta
+        for _ in range(relative_degree - 1):
+            q = v
+            for prev in cols:
+                dot = self.op("ReduceSum", self.op("Mul", q, prev), self.ints([1]), keepdims=1)
+                q = self.op("Sub", q, self.op("Mul", dot, prev))
+            norm = self.op("Sqrt", self.op("ReduceSumSquare", q, axes=[1], keepdims=1))
+            cols.append(self.op("Div", q, norm))
+            v = self.op("Squeeze", self.op("MatMul", A, self.op("Unsqueeze", v, self.ints([2]))),
+                        self.ints([2]))
+        parts = [self.op("Unsqueeze", c, self.ints([2])) for c in cols]
+        return parts[0] if len(parts) == 1 else self.op("Concat", *parts, axis=2)
+
     def lstsq(self, K: str, h: str, weights: NDArray | None, n: int, dtype: Any,
-              ridge: float = 1e-12) -> str:
+              ridge: float = 1e-12, constraints: tuple[str, int] | None = None) -> str:
         """Weighted least-squares coefficients ``(b, n)`` of records ``h`` in bases ``K``.
 
         The normal equations with the relative ridge of
-        :func:`kautztwin.nn.kautz_torch.lstsq_coefficients`.
+        :func:`kautztwin.nn.kautz_torch.lstsq_coefficients`; ``constraints`` is
+        ``(M, q)``, the columns ``M (b, n, q)`` of equality constraints ``M^T c = 0``
+        (projected as in torch: Lagrange multipliers).
         """
         Kw = K if weights is None else self.op("Mul", K, self.const(weights, dtype, "w"))
         G = self.op("MatMul", Kw, self.op("Transpose", K, perm=[0, 2, 1]))
@@ -223,7 +266,16 @@ class Graph:
             trace = self.op("ReduceSum", self.op("Mul", G, eye), self.ints([1, 2]), keepdims=1)
             G = self.op("Add", G, self.op("Mul", self.op("Mul", trace,
                                                          self.const(ridge / n, dtype)), eye))
-        return self.solve_spd(G, rhs, n, dtype)
+        if constraints is None:
+            return self.solve_spd(G, rhs, n, dtype)
+        M, q = constraints
+        sol = self.solve_spd_columns(G, self.op("Concat", rhs, M, axis=2), n, q + 1, dtype)
+        c_free, GiM = self.slice(sol, 2, 0, 1), self.slice(sol, 2, 1, q + 1)
+        Mt = self.op("Transpose", M, perm=[0, 2, 1])
+        lam = self.solve_spd_columns(self.op("MatMul", Mt, GiM), self.op("MatMul", Mt, c_free),
+                                     q, 1, dtype)
+        c = self.op("Sub", c_free, self.op("MatMul", GiM, lam))
+        return self.op("Squeeze", c, self.ints([2]))
 
     def combine(self, c: str, K: str) -> str:
         """``sum_i c_i K_i``: ``(b, n) x (b, n, m) -> (b, m)``."""

@@ -42,7 +42,7 @@ import scipy.linalg
 import scipy.signal
 
 from ..approx import KautzModel
-from ..exceptions import DataError, KautzTwinError
+from ..exceptions import DataError, ExportError, KautzTwinError
 from ..ident import TransferFunctionModel
 from ._fmi_c import DiscreteRealisation, c_source, model_description, new_guid
 
@@ -56,10 +56,6 @@ __all__ = [
 
 #: relative tolerance below which a delay's fractional step is taken as none
 _DELAY_RTOL = 1e-9
-
-
-class ExportError(KautzTwinError, RuntimeError):
-    """An export cannot be built here: no C compiler, or the compiler failed."""
 
 
 # --------------------------------------------------------------------------- model files

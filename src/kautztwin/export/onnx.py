@@ -206,9 +206,17 @@ def _adaptive_graph(
     w_net = net.ls_weights()
     w_net = None if w_net is None else _array(w_net)
     lo, hi = g.const(log_centre - rho, dtype, "lo"), g.const(log_centre + rho, dtype, "hi")
+    r_stages, r_fit = int(net.relative_degree), int(est.relative_degree_)
+
+    def constraints(params: str, arithmetic: Any, r: int) -> tuple[str, int] | None:
+        if r <= 1:
+            return None
+        return g.relative_degree_constraints(layout, params, r, arithmetic), r - 1
+
     for k in range(1, net.n_stages):
-        K = g.design(layout, g.op("Exp", lp), x, net.kind, t0, h, n_samples, bound, dtype)
-        c = g.lstsq(K, x, w_net, n, dtype)
+        stage_params = g.op("Exp", lp)
+        K = g.design(layout, stage_params, x, net.kind, t0, h, n_samples, bound, dtype)
+        c = g.lstsq(K, x, w_net, n, dtype, constraints=constraints(stage_params, dtype, r_stages))
         residual = g.op("Div", g.op("MatMul", g.op("Sub", x, g.combine(c, K)), P), norm)
         inp = g.op("Concat", z, residual, g.op("Sub", lp, centre), g.op("Div", c, norm), axis=1)
         step = g.op("Mul", g.const(net.step, dtype),
@@ -220,7 +228,8 @@ def _adaptive_graph(
     f64 = np.float64
     w = weights_tensor(t, est.weights, torch.float64)
     K64 = g.design(layout, params, x64, net.kind, t0, h, n_samples, bound, f64)
-    coef = g.lstsq(K64, x64, None if w is None else w.numpy(), n, f64)
+    coef = g.lstsq(K64, x64, None if w is None else w.numpy(), n, f64,
+                   constraints=constraints(params, f64, r_fit))
     g.rename(params, "block_parameters")
     g.rename(g.op("MatMul", params, g.const(layout.pole_re, f64, "Mre")), "poles_real")
     g.rename(g.op("MatMul", params, g.const(layout.pole_im, f64, "Mim")), "poles_imag")
@@ -233,6 +242,7 @@ def _adaptive_graph(
         "block_kinds": json.dumps(list(net.kinds)),
         "centre_poles": json.dumps([[p.real, p.imag] for p in est.centre_poles_]),
         "refine": "false (the variable-projection refinement is not part of the graph)",
+        "relative_degree": str(r_fit),
     }
     return g, inputs, outputs, meta
 

@@ -7,11 +7,15 @@ under +-50 %).  :class:`AdaptivePoleEstimator` removes the ceiling: a network
 reads the record and predicts the basis *poles* of that record, kept stable
 by construction (a correction stage then adjusts them from the residual of
 the fit, a learned Gauss-Newton step), and the coefficients are the
-least-squares projection of the record onto the predicted basis.  Every step
+least-squares projection of the record onto the predicted basis (under the
+relative degree read from the training records: for a system without zeros the
+fit keeps the first Markov parameters at zero, which keeps noise out of those
+coefficient directions).  Every step
 is differentiable (:mod:`kautztwin.nn.kautz_torch`), so the network is trained
 end to end on the error of the fitted response against the noise-free one.
-An optional variable-projection refinement (:func:`kautztwin.optimize_poles`)
-starts from the network's poles.
+An optional variable-projection refinement (:func:`kautztwin.optimize_poles`, or its
+constrained counterpart) starts from the network's poles.  The network is trained in
+float32 and kept in float64 once fitted: every prediction runs in float64.
 
 Modules, one job each:
 

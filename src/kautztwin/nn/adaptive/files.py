@@ -56,7 +56,9 @@ def save_estimator(est: Any, directory: str | Path) -> Path:
             "step": net.step,
             "n_parameters": sum(p.numel() for p in net.parameters()),
             "dtype": str(net.projector.dtype).removeprefix("torch."),
+            "relative_degree": int(net.relative_degree),
         },
+        "fit_relative_degree": int(est.relative_degree_),
         "weights_rule": est.weights,
         "refine": bool(est.refine),
         "refine_max_iter": int(est.refine_max_iter),
@@ -119,6 +121,12 @@ def _from_files(cls: type, meta: dict[str, Any], weights_path: Path) -> Any:
     dtype = getattr(torch, str(arch["dtype"]))
     state = load_weights(weights_path)
     n_feat = int(arch["n_features"])
+    # files written before the option have none: the unconstrained fit
+    relative_degree = int(arch.get("relative_degree", 1))
+    fit_degree = int(meta.get("fit_relative_degree", relative_degree))
+    for r in (relative_degree, fit_degree):
+        if not 1 <= r <= len(centre):
+            raise DataError(f"stored relative degree {r} is out of range")
     module = AdaptivePoleNetwork(
         kinds,
         centre,
@@ -130,6 +138,7 @@ def _from_files(cls: type, meta: dict[str, Any], weights_path: Path) -> Any:
         step=float(arch["step"]),
         kind=str(meta["kind"]),
         dtype=dtype,
+        relative_degree=relative_degree,
     )
     module.load_state_dict(state, strict=True)
     est = cls(
@@ -145,6 +154,7 @@ def _from_files(cls: type, meta: dict[str, Any], weights_path: Path) -> Any:
         refine=bool(meta["refine"]),
         refine_max_iter=int(meta["refine_max_iter"]),
         pretrain_epochs=int(meta["pretrain_epochs"]),
+        relative_degree=fit_degree,
     )
     est._set_fitted(
         module,
@@ -152,6 +162,7 @@ def _from_files(cls: type, meta: dict[str, Any], weights_path: Path) -> Any:
         [TrainingHistory.from_dict(h) for h in meta["pretrain_histories"]],
         TrainingConfig.from_dict(meta["config"]),
         int(meta["n_train"]),
+        fit_degree,
     )
     unc = meta.get("uncertainty")
     if unc is not None:

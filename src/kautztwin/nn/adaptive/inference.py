@@ -20,13 +20,14 @@ from ...approx import optimize_poles
 from ...basis._blocks import parse_poles
 from ...exceptions import ConvergenceWarning, DataError, KautzTwinError
 from ..estimator_base import checked_records
-from ..kautz_torch import block_poles, lstsq_coefficients, response_weights
+from ..kautz_torch import block_poles, response_weights
 from .network import RECORD_BATCH, AdaptivePoleNetwork
 
 __all__ = [
     "check_records",
     "least_squares_fit",
     "predict_params",
+    "refine_constrained",
     "refine_params",
     "response_jacobian",
     "weights_tensor",
@@ -131,6 +132,70 @@ def refine_params(
     return out
 
 
+def refine_constrained(
+    module: AdaptivePoleNetwork,
+    X: NDArray,
+    params: NDArray,
+    w: torch.Tensor | None,
+    max_iter: int,
+    relative_degree: int,
+) -> NDArray[np.float64]:
+    """Variable projection under a relative-degree constraint, record by record.
+
+    :func:`refine_params` optimises the poles of the *unconstrained* least-squares fit;
+    with ``relative_degree > 1`` the fit keeps the first Markov parameters at zero, so the
+    poles are refined for that fit instead: ``scipy.optimize.least_squares`` (trust region,
+    finite-difference Jacobian) over the log block parameters, the residual being the
+    record minus its constrained least-squares fit (:meth:`AdaptivePoleNetwork.least_squares`,
+    float64).  A record whose refinement fails or does not lower the residual keeps its start.
+
+    Parameters
+    ----------
+    module : AdaptivePoleNetwork
+    X : ndarray of shape (n_records, n_samples)
+    params : ndarray of shape (n_records, n_params)
+        Start values.
+    w : torch.Tensor or None
+        Least-squares weights (:func:`weights_tensor`).
+    max_iter : int
+        Most Jacobian evaluations per record.
+    relative_degree : int
+        Degree of the fit.
+
+    Returns
+    -------
+    ndarray of shape (n_records, n_params)
+    """
+    import scipy.optimize
+
+    sw = None if w is None else np.sqrt(w.double().numpy())
+    out = params.copy()
+
+    def residual(log_p: NDArray, x: torch.Tensor) -> NDArray:
+        P = torch.from_numpy(np.exp(log_p))[None]
+        K = module.design(P)
+        c = module.least_squares(K, x, P, w, relative_degree)
+        r = (x - (c[:, None, :] @ K)[:, 0])[0].numpy()
+        return r if sw is None else r * sw
+
+    with torch.no_grad():
+        for i in range(X.shape[0]):
+            x = torch.as_tensor(X[i : i + 1], dtype=torch.float64)
+            start = np.log(params[i])
+            try:
+                res = scipy.optimize.least_squares(
+                    residual, start, args=(x,), method="trf", x_scale=1.0,
+                    max_nfev=int(max_iter) * (start.size + 1),
+                )
+            except (ValueError, np.linalg.LinAlgError, RuntimeError):
+                continue
+            if np.all(np.isfinite(res.x)) and res.cost <= 0.5 * float(
+                np.sum(residual(start, x) ** 2)
+            ):
+                out[i] = np.exp(res.x)
+    return out
+
+
 def weights_tensor(t: NDArray, rule: str, dtype: torch.dtype) -> torch.Tensor | None:
     """Least-squares weights of the ``weights`` option; ``None`` for ordinary least squares."""
     if rule == "uniform":
@@ -146,6 +211,7 @@ def least_squares_fit(
     dtype: torch.dtype,
     *,
     responses: bool = False,
+    relative_degree: int | None = None,
 ) -> NDArray[np.float64]:
     """Least-squares fit of every record on the basis of its block parameters.
 
@@ -161,6 +227,8 @@ def least_squares_fit(
         Dtype of the basis and the least squares.
     responses : bool, default=False
         Return the fitted responses instead of the coefficients.
+    relative_degree : int, optional
+        Degree of the fit (default: the module's own).
 
     Returns
     -------
@@ -172,19 +240,25 @@ def least_squares_fit(
             P = torch.as_tensor(params[s : s + RECORD_BATCH], dtype=dtype)
             h = torch.as_tensor(X[s : s + RECORD_BATCH], dtype=dtype)
             K = module.design(P)
-            c = lstsq_coefficients(K, h, w)
+            c = module.least_squares(K, h, P, w, relative_degree)
             fit = (c[:, None, :] @ K)[:, 0] if responses else c
             out[s : s + P.shape[0]] = fit.double().numpy()
     return out
 
 
 def response_jacobian(
-    module: AdaptivePoleNetwork, params: NDArray, coef: NDArray
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    module: AdaptivePoleNetwork,
+    params: NDArray,
+    coef: NDArray,
+    relative_degree: int | None = None,
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64] | None]:
     """Fitted responses and their Jacobian in ``(params, coefficients)`` (float64, batched).
 
-    The coefficient columns are the basis signals themselves; the parameter columns are
-    central differences of ``coef @ design(params)`` with a relative step of 1e-5.
+    The coefficient columns are the basis signals themselves (under a relative-degree
+    constraint, their combinations that keep it: ``K^T Q`` with ``Q`` an orthonormal
+    basis of the constraints' null space, ``relative_degree - 1`` columns fewer); the
+    parameter columns are central differences of ``coef @ design(params)`` with a
+    relative step of 1e-5.
 
     Parameters
     ----------
@@ -192,16 +266,28 @@ def response_jacobian(
         Supplies the basis signals (:meth:`~AdaptivePoleNetwork.design`).
     params : ndarray of shape (n_records, n_params)
     coef : ndarray of shape (n_records, n_functions)
+    relative_degree : int, optional
+        Degree of the fit (default: the module's own).
 
     Returns
     -------
     fitted : ndarray of shape (n_records, n_samples)
-    jac : ndarray of shape (n_records, n_samples, n_params + n_functions)
+    jac : ndarray of shape (n_records, n_samples, n_params + n_functions - relative_degree + 1)
+    lift : ndarray of shape (n_records, n_params + n_functions, n_params + n_free) or None
+        ``blockdiag(I, Q)``: maps the Jacobian's coordinates (parameters, free coefficient
+        directions) to (parameters, coefficients), so that a covariance ``S`` of the former
+        is ``lift S lift^T`` in the latter; ``None`` without a constraint (the identity).
     """
     n_rec, n_par = params.shape
     n_samples = int(module._t.size)
+    r = module.relative_degree if relative_degree is None else int(relative_degree)
+    n_free = coef.shape[1] - (r - 1)
     fitted = np.empty((n_rec, n_samples))
-    jac = np.empty((n_rec, n_samples, n_par + coef.shape[1]))
+    jac = np.empty((n_rec, n_samples, n_par + n_free))
+    lift = None
+    if n_free < coef.shape[1]:
+        lift = np.zeros((n_rec, n_par + coef.shape[1], n_par + n_free))
+        lift[:, :n_par, :n_par] = np.eye(n_par)
     with torch.no_grad():
         for s in range(0, n_rec, RECORD_BATCH):
             P = torch.as_tensor(params[s : s + RECORD_BATCH], dtype=torch.float64)
@@ -209,7 +295,13 @@ def response_jacobian(
             K = module.design(P)
             b = slice(s, s + P.shape[0])
             fitted[b] = (c[:, None, :] @ K)[:, 0].numpy()
-            jac[b, :, n_par:] = K.transpose(1, 2).numpy()
+            M = module.constraints(P, r)
+            if M is None:
+                jac[b, :, n_par:] = K.transpose(1, 2).numpy()
+            else:  # the null space of M^T: the last columns of a complete QR of M
+                Q = torch.linalg.qr(M, mode="complete").Q[:, :, M.shape[-1] :]
+                jac[b, :, n_par:] = (K.transpose(1, 2) @ Q).numpy()
+                lift[b, n_par:, n_par:] = Q.numpy()
             for j in range(n_par):
                 h = 1e-5 * torch.clamp(P[:, j].abs(), min=1e-3)
                 up, down = P.clone(), P.clone()
@@ -217,4 +309,4 @@ def response_jacobian(
                 down[:, j] -= h
                 diff = (c[:, None, :] @ (module.design(up) - module.design(down)))[:, 0]
                 jac[b, :, j] = (diff / (2 * h[:, None])).numpy()
-    return fitted, jac
+    return fitted, jac, lift

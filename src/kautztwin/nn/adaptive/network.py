@@ -11,9 +11,18 @@ import torch
 from numpy.typing import ArrayLike
 from torch import nn
 
-from ..kautz_torch import kautz_functions, lstsq_coefficients, network_matrices, propagate
+from ..kautz_torch import (
+    kautz_functions,
+    lstsq_coefficients,
+    network_matrices,
+    propagate,
+    relative_degree_constraints,
+)
 
-__all__ = ["RECORD_BATCH", "AdaptivePoleNetwork"]
+__all__ = ["RECORD_BATCH", "TRAINING_DTYPE", "AdaptivePoleNetwork"]
+
+#: Dtype the network is trained in (the fitted estimator predicts in float64).
+TRAINING_DTYPE = torch.float32
 
 #: Records per batch when the network is applied without gradients (prediction, stage
 #: inputs): small blocks stay in cache.
@@ -77,7 +86,11 @@ class AdaptivePoleNetwork(nn.Module):
     4. **Coefficients.**  The Kautz functions of the final poles
        (:func:`~kautztwin.nn.kautz_torch.kautz_functions`, or their step
        responses) and the weighted least-squares coefficients of the record
-       in them (:func:`~kautztwin.nn.kautz_torch.lstsq_coefficients`).
+       in them (:func:`~kautztwin.nn.kautz_torch.lstsq_coefficients`), under the
+       constraints of the relative degree :math:`r` when :math:`r > 1`
+       (:func:`~kautztwin.nn.kautz_torch.relative_degree_constraints`: the model's
+       first :math:`r - 1` Markov parameters vanish, so the fit spends
+       :math:`r - 1` fewer coefficients on the noise).
 
     Every last layer starts at zero: an untrained network predicts the centre.
 
@@ -105,6 +118,8 @@ class AdaptivePoleNetwork(nn.Module):
         What the records are.
     dtype : torch.dtype, default=torch.float32
         Dtype of the weights and the computation.
+    relative_degree : int, default=1
+        Relative degree imposed on the fitted models (``1``: none).
 
     Attributes
     ----------
@@ -134,9 +149,11 @@ class AdaptivePoleNetwork(nn.Module):
         step: float = 0.5,
         weights: ArrayLike | None = None,
         kind: str = "impulse",
-        dtype: torch.dtype = torch.float32,
+        dtype: torch.dtype = TRAINING_DTYPE,
+        relative_degree: int = 1,
     ) -> None:
         super().__init__()
+        self.relative_degree = int(relative_degree)
         self.kinds = tuple(str(k) for k in kinds)
         self.kind = str(kind)
         centre = np.asarray(centre, dtype=float)
@@ -157,6 +174,36 @@ class AdaptivePoleNetwork(nn.Module):
         sizes = [m] + [2 * m + 2 * n] * (self.n_stages - 1)
         self.stages = nn.ModuleList(_Stage(k, self.hidden, n, dtype) for k in sizes)
 
+    def cast(self, dtype: torch.dtype) -> AdaptivePoleNetwork:
+        """Cast the weights and buffers to ``dtype`` in place; the time grid stays float64.
+
+        The estimator trains in ``float32`` (:data:`TRAINING_DTYPE`) and predicts in
+        ``float64``: casting ``float32`` weights to ``float64`` is exact, and the
+        ``float64`` evaluation is the one other implementations (the ONNX graph) can
+        reproduce to rounding.
+
+        Parameters
+        ----------
+        dtype : torch.dtype
+
+        Returns
+        -------
+        AdaptivePoleNetwork
+            ``self``.
+        """
+        t = self.t
+        self.to(dtype)
+        self.t = t
+        for name, buf in self._buffers.items():  # one memory layout: the same rounding as
+            if buf is not None:  # a module loaded from a file (load_state_dict copies)
+                self._buffers[name] = buf.contiguous()
+        return self
+
+    @property
+    def dtype(self) -> torch.dtype:
+        """Dtype of the weights and the computation."""
+        return self.projector.dtype
+
     def _load_from_state_dict(self, state_dict: Any, prefix: str, *args: Any) -> None:
         super()._load_from_state_dict(state_dict, prefix, *args)
         self._t = self.t.detach().cpu().numpy().copy()
@@ -172,6 +219,60 @@ class AdaptivePoleNetwork(nn.Module):
         """
         w = self.weights
         return None if bool(torch.all(w == 1)) else w
+
+    def constraints(
+        self, params: torch.Tensor, relative_degree: int | None = None
+    ) -> torch.Tensor | None:
+        """Constraints of the relative degree on the coefficients, ``None`` without one.
+
+        Parameters
+        ----------
+        params : torch.Tensor of shape (batch, n_params)
+            Block parameters.
+        relative_degree : int, optional
+            Another degree than the module's own (the estimator's final fit may drop it).
+
+        Returns
+        -------
+        torch.Tensor of shape (batch, n_functions, relative_degree - 1) or None
+            :func:`~kautztwin.nn.kautz_torch.relative_degree_constraints` of the
+            parameters' realisation; ``None`` when ``relative_degree == 1``.
+        """
+        r = self.relative_degree if relative_degree is None else int(relative_degree)
+        if r <= 1:
+            return None
+        A, B = network_matrices(self.kinds, params)
+        return relative_degree_constraints(A, B, r)
+
+    def least_squares(
+        self,
+        K: torch.Tensor,
+        x: torch.Tensor,
+        params: torch.Tensor,
+        weights: torch.Tensor | None = None,
+        relative_degree: int | None = None,
+    ) -> torch.Tensor:
+        """Least-squares coefficients of records on their bases, under the relative degree.
+
+        Parameters
+        ----------
+        K : torch.Tensor of shape (batch, n_functions, n_samples)
+            Basis signals (:meth:`design` of ``params``).
+        x : torch.Tensor of shape (batch, n_samples)
+            Records.
+        params : torch.Tensor of shape (batch, n_params)
+            Block parameters of ``K`` (for the constraints).
+        weights : torch.Tensor of shape (n_samples,), optional
+            Least-squares weights; default ones.
+        relative_degree : int, optional
+            Another degree than the module's own (:meth:`constraints`).
+
+        Returns
+        -------
+        torch.Tensor of shape (batch, n_functions)
+        """
+        M = self.constraints(params, relative_degree)
+        return lstsq_coefficients(K, x, weights, constraints=M)
 
     def coordinates(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         r"""Unit-length coordinates of the records in the feature subspace, and their norms.
@@ -229,8 +330,9 @@ class AdaptivePoleNetwork(nn.Module):
         torch.Tensor of shape (batch, 2 n_features + 2 n_functions)
             ``[z, residual coordinates, log_params - log_centre, coefficients / norm]``.
         """
-        K = self.design(torch.exp(log_params))
-        c = lstsq_coefficients(K, x, self.ls_weights())
+        params = torch.exp(log_params)
+        K = self.design(params)
+        c = self.least_squares(K, x, params, self.ls_weights())
         fitted = (c[:, None, :] @ K)[:, 0]
         residual = ((x - fitted) @ self.projector) / norm
         return torch.cat([z, residual, log_params - self.log_centre, c / norm], dim=1)
@@ -326,7 +428,7 @@ class AdaptivePoleNetwork(nn.Module):
         if params is None:
             params = self(x)
         K = self.design(params)
-        c = lstsq_coefficients(K, x, self.ls_weights())
+        c = self.least_squares(K, x, params, self.ls_weights())
         fitted = (c[:, None, :] @ K)[:, 0]
         return params, c, fitted
 
@@ -335,5 +437,6 @@ class AdaptivePoleNetwork(nn.Module):
         return (
             f"kinds={self.kinds}, kind={self.kind!r}, n_samples={self._t.size}, "
             f"n_features={self.projector.shape[1]}, n_stages={self.n_stages}, "
-            f"pole_range={self.pole_range:g}, step={self.step:g}"
+            f"pole_range={self.pole_range:g}, step={self.step:g}, "
+            f"relative_degree={self.relative_degree}"
         )

@@ -2,18 +2,21 @@
 
 What :meth:`AdaptivePoleEstimator.fit <kautztwin.nn.AdaptivePoleEstimator.fit>` and
 ``fine_tune`` do, as functions: check the options (:func:`check_options`), choose the block
-structure and its centre (:func:`resolve_structure`), build a fresh network on the principal
+structure and its centre (:func:`resolve_structure`) and the relative degree of the fit
+(:func:`resolve_relative_degree`), build a fresh network on the principal
 subspace of the noise-free records (:func:`new_network`), train it stage by stage
 (:func:`train_stages`: a warm start on the true poles, then the end-to-end loss
 ``1 - fit/100``), and draw free training data from an uncertain system
 (:func:`draw_training_data`).
 
-Size: it is one job in one file, just over 600 lines with
-the numpydoc of its functions; the loss functions and label matching belong to it.
+Size: it is one job in one file, about 700 lines with the numpydoc of its functions; the
+loss functions, the label matching and the reading of the relative degree from the
+labelled records (:func:`resolve_relative_degree`) belong to it.
 """
 
 from __future__ import annotations
 
+import copy
 import functools
 import math
 import warnings
@@ -33,7 +36,12 @@ from ...datasets import ParametricSystem, ResponseDataset, draw_parameters, make
 from ...exceptions import ConvergenceWarning, DataError, KautzTwinError
 from ..config import TrainingConfig, TrainingHistory
 from ..data import Standardizer, split_indices
-from ..kautz_torch import response_weights
+from ..kautz_torch import (
+    kautz_functions,
+    lstsq_coefficients,
+    network_matrices,
+    response_weights,
+)
 from ..training import fit_network
 from .network import RECORD_BATCH, AdaptivePoleNetwork
 
@@ -42,7 +50,9 @@ __all__ = [
     "check_options",
     "draw_training_data",
     "new_network",
+    "keep_relative_degree",
     "resolve_config",
+    "resolve_relative_degree",
     "resolve_structure",
     "train_stages",
 ]
@@ -334,6 +344,156 @@ def resolve_structure(
         raise DataError(f"structure: {exc}") from None
 
 
+_RELATIVE_DEGREE_RECORDS = 500  # labelled noise-free records the 'auto' relative degree reads
+_MARKOV_TOL = 1e-6  # a Markov parameter below this (relative) counts as zero
+_EXACT_FIT_TOL = 1e-6  # a record is in its true poles' span below this relative residual
+
+
+def resolve_relative_degree(
+    option: int | str | None,
+    kinds: tuple[str, ...],
+    t: NDArray,
+    clean: NDArray,
+    kind: str,
+    labels: NDArray,
+    valid: NDArray,
+) -> int:
+    """Relative degree an estimator's ``relative_degree`` option stands for.
+
+    ``'auto'`` reads it from the noise-free training records whose true poles fit the
+    block structure (at most 500): each is projected onto the basis of its *own* poles
+    (exact to rounding when the record lies in that span) and its Markov parameters
+    :math:`c^T A^k B = y^{(k)}(0)` are computed; the relative degree is one more than the
+    number of leading ones that vanish (below ``1e-6`` relative) in every such record.
+    Without any (no poles that fit, or a record outside its poles' span) it is ``1``: no
+    constraint, the generic fit.
+
+    Parameters
+    ----------
+    option : int, 'auto' or None
+        The option (``None`` means ``1``).
+    kinds : tuple of str
+        Block structure.
+    t : ndarray of shape (n_samples,)
+    clean : ndarray of shape (n_records, n_samples)
+        Noise-free records.
+    kind : {'impulse', 'step'}
+        What the records are.
+    labels, valid : ndarray
+        The records' true poles as block parameters and which fit the structure
+        (``_match_labels``).
+
+    Returns
+    -------
+    int
+        In ``[1, n_functions]``.
+
+    Raises
+    ------
+    DataError
+        If the option is neither ``'auto'``, ``None`` nor an integer in ``[1, n_functions]``.
+    """
+    n = int(labels.shape[1])
+    if option is None:
+        return 1
+    if isinstance(option, str):
+        if option != "auto":
+            raise DataError(f"relative_degree must be 'auto' or an integer; got {option!r}")
+        return _measured_relative_degree(kinds, t, clean, kind, labels, valid)
+    r = check_int(option, "relative_degree", minimum=1)
+    if r > n:
+        raise DataError(
+            f"relative_degree must be at most the number of basis functions ({n}); got {r}"
+        )
+    return r
+
+
+def _measured_relative_degree(
+    kinds: tuple[str, ...],
+    t: NDArray,
+    clean: NDArray,
+    kind: str,
+    labels: NDArray,
+    valid: NDArray,
+) -> int:
+    """The ``'auto'`` relative degree of :func:`resolve_relative_degree`."""
+    idx = np.flatnonzero(valid)[:_RELATIVE_DEGREE_RECORDS]
+    if idx.size == 0:
+        return 1
+    n = int(labels.shape[1])
+    P = torch.as_tensor(labels[idx], dtype=torch.float64)
+    y = torch.as_tensor(clean[idx], dtype=torch.float64)
+    with torch.no_grad():
+        A, B = network_matrices(kinds, P)
+        K = kautz_functions(kinds, P, t)
+        if kind == "step":
+            K = torch.linalg.solve(A, K - B[:, :, None])
+        c = lstsq_coefficients(K, y, ridge=0.0)
+        residual = (y - (c[:, None, :] @ K)[:, 0]).norm(dim=1) / y.norm(dim=1)
+        if bool(torch.any(~torch.isfinite(residual))) or float(residual.max()) > _EXACT_FIT_TOL:
+            return 1
+        r = 1
+        v = B
+        while r < n:
+            markov = (c * v).sum(dim=1).abs()
+            if bool(torch.any(markov > _MARKOV_TOL * c.norm(dim=1) * v.norm(dim=1))):
+                break
+            r += 1
+            v = (A @ v[..., None])[..., 0]
+    return r
+
+
+def keep_relative_degree(
+    module: AdaptivePoleNetwork, dataset: ResponseDataset, config: TrainingConfig, seed: int
+) -> bool:
+    """Whether the trained ``module`` fits its validation records better with its constraint.
+
+    The constraint removes ``relative_degree - 1`` coefficient directions from the fit: less
+    noise gets through, but nothing absorbs an error of the poles.  For a network whose poles
+    are precise (a well-trained one) that pays; for a small or briefly trained one it can
+    cost more than it saves.  The ``'auto'`` option therefore checks, on the validation part
+    of the split, the mean ``1 - fit/100`` of the constrained fit against the unconstrained
+    fit on the same poles (float64), and keeps the constraint only if it is not worse.
+
+    Parameters
+    ----------
+    module : AdaptivePoleNetwork
+        Trained, with ``relative_degree > 1``.
+    dataset : ResponseDataset
+        The training data set (its validation part is read).
+    config : TrainingConfig
+        Its ``validation_fraction`` gives the split.
+    seed : int
+        Seed of the split.
+
+    Returns
+    -------
+    bool
+    """
+    _, val_idx = split_indices(len(dataset), config.validation_fraction, seed)
+    if val_idx.size == 0:
+        return True
+    probe = copy.deepcopy(module).cast(torch.float64).eval()
+    x = torch.as_tensor(np.asarray(dataset.responses)[val_idx], dtype=torch.float64)
+    clean = torch.as_tensor(np.asarray(dataset.clean)[val_idx], dtype=torch.float64)
+    spread = torch.as_tensor(_spread(clean.numpy()))
+    w = probe.ls_weights()
+    losses = []
+    with torch.no_grad():
+        # the poles as trained (the correction stages keep their constraint either way)
+        params = torch.cat([probe(xb) for xb in x.split(RECORD_BATCH)])
+        for r in (probe.relative_degree, 1):
+            total = 0.0
+            for s in range(0, x.shape[0], RECORD_BATCH):
+                b = slice(s, s + RECORD_BATCH)
+                K = probe.design(params[b])
+                c = probe.least_squares(K, x[b], params[b], w, r)
+                fitted = (c[:, None, :] @ K)[:, 0]
+                total += float(((clean[b] - fitted).norm(dim=1) / spread[b]).sum())
+            losses.append(total)
+    return losses[0] <= losses[1]
+
+
 # =========================================================================== training
 def new_network(
     params: Mapping[str, Any], dataset: ResponseDataset, config: TrainingConfig
@@ -377,6 +537,12 @@ def new_network(
     )
     centre = _omega_floor(kinds, centre)
     train_idx, val_idx = split_indices(len(dataset), config.validation_fraction, seed)
+    labels, valid = _match_labels(kinds, centre, np.asarray(dataset.poles))
+    in_train = np.zeros(len(dataset), dtype=bool)
+    in_train[train_idx] = True
+    relative_degree = resolve_relative_degree(
+        params["relative_degree"], kinds, t, clean, kind, labels, valid & in_train
+    )
 
     # feature subspace: principal directions of unit-norm noise-free training responses
     rng = np.random.default_rng(seed)
@@ -401,8 +567,8 @@ def new_network(
             step=step,
             weights=response_weights(t, params["weights"]).numpy(),
             kind=kind,
+            relative_degree=relative_degree,
         )
-    labels, valid = _match_labels(kinds, centre, np.asarray(dataset.poles))
     return module, (labels, valid), seed
 
 
