@@ -211,4 +211,5 @@ def test_train_family_bad_file_is_a_one_line_usage_error(tmp_path, capsys, text,
 
 def test_train_needs_family_or_config(tmp_path, capsys):
     assert main(["train", "--out", str(tmp_path / "o")]) == 2
-    assert "one of the arguments --family --config --amortised is required" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "one of the arguments --family --config --amortised is required" in err
