@@ -93,7 +93,7 @@ DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "adaptive.json"
 FULL = {
     "n_train": 20000,
     "n_test": 1000,
-    "sweep_train": 8000,
+    "sweep_train": 20000,
     "n_sweep": 200,
     "estimator": {"config": {"max_epochs": 12}, "relative_degree": "auto"},
 }
@@ -367,6 +367,11 @@ def main(argv: list[str] | None = None) -> int:
         help=f"noise levels of the sweep to run (default: all of {SWEEP_NOISES})",
     )
     parser.add_argument(
+        "--sweep-train", type=int, default=None, metavar="N",
+        help="training records of the sweep's estimators at the noise levels other than the "
+        "main case's (default: 8000; the main case's estimator trains on 20000)",
+    )
+    parser.add_argument(
         "--merge", type=Path, nargs="+", default=None, metavar="JSON",
         help="merge the JSON files of a run split over processes into --out and exit",
     )
@@ -375,6 +380,8 @@ def main(argv: list[str] | None = None) -> int:
         return _merge(args.merge, args.out)
     torch.set_num_threads(1)
     settings = QUICK if args.quick else FULL
+    if args.sweep_train is not None:
+        settings = {**settings, "sweep_train": args.sweep_train}
 
     machine = machine_info()
     started = time.perf_counter()
