@@ -354,6 +354,10 @@ class DigitalTwin:
         self._reading = self.plant.reset()
         self._t_offset = 0.0
         self._replayable = not getattr(self.plant, "connected", False)
+        if self._replay.rows is not None:
+            self._versions.resumed()  # where the stored run judged its live pole retunings
+        if self.background and cfg.retune:
+            self._versions.prestart_poles(str(cfg.updater.get("worker", "thread")))
         if self._replay.rows is not None and not self._replayable:
             self._k_cl_stored = self._stored_closed_loop()
         self._started = True
@@ -873,7 +877,7 @@ class DigitalTwin:
             if upd is not None:
                 upd.close()
         if self._versions is not None:
-            self._versions.worker.close()
+            self._versions.close()
         self.plant.close()
         if self._owns_history:
             self.history.close()

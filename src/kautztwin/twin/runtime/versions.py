@@ -7,6 +7,23 @@ a new version; every new version is stored, and its estimator retraining
 and controller retuning run synchronously or are queued for the
 background worker (:class:`~kautztwin.twin.optimization.background.OptimizationWorker`).
 The controller switch itself is :class:`~.control.ControllerVersions`.
+
+**The resync pole re-optimisation against a live plant** (``offload``) runs off
+the sample thread (:mod:`kautztwin.twin.optimization.poles`): at the resync the
+virtual step test is frozen, a ``'pole-retune'`` event logs the submission,
+the worker (thread or process, as the updater's re-identification) fits the
+candidate while the loop runs on the current version, and the first update
+that finds it finished judges it with the updater's rules, on the validation
+window frozen at the resync, as a background re-identification is judged (a
+``'model-update'`` / ``'model-rejected'`` event "pole re-optimisation: ...",
+``k_submitted`` the resync; a rejection then tries the consolidation, as the
+synchronous path does at once).  One job at a time: a resync meanwhile is
+logged and skipped; a new version (a re-identification) makes the job stale
+("discarded").  A resumed run replays the same decisions: the candidate is a
+pure function of the frozen step test, computed synchronously in the replay
+and judged at the sample the stored event names (at the first live sample when
+the run was killed before the judgement).  Offline runs keep the synchronous
+call (their numbers are unchanged).
 """
 
 from __future__ import annotations
@@ -20,6 +37,13 @@ from ...exceptions import KautzTwinError
 from ..digital import DigitalModel
 from ..optimization import EstimatorRetraining
 from ..optimization.background import OptimizationJob, OptimizationWorker
+from ..optimization.poles import (
+    PendingPoles,
+    PoleWorker,
+    judge_pole_candidate,
+    pole_candidate,
+    pole_job,
+)
 from ..prediction import MPCController
 from ..update import ModelUpdate, Updater, UpdateResult
 from .config import TwinConfig
@@ -74,6 +98,9 @@ class ModelVersions:
             context=self.control.context,
         )
         self._on_estimator = on_estimator
+        self.poles: PoleWorker | None = None  # the worker of the live pole re-optimisation
+        self._pending_poles: PendingPoles | None = None
+        self._stored_poles: dict[int, int] | None = None  # replay: resync k -> judged at
 
     # ------------------------------------------------------------------ the first version
     def first(self, updater: Updater, k: int, t: float, *, u_op: float, offload: bool) -> None:
@@ -93,6 +120,10 @@ class ModelVersions:
         cfg = self.config
         rec = self.record
         self.updater = updater
+        if offload and self._pole_async(updater, k, True) and self.poles is None:
+            self.poles = PoleWorker(updater.worker)
+            if updater.worker == "process":
+                self.poles.prestart()  # its interpreter starts while the twin runs
         dm = updater.digital_model
         self.version = dm.version
         rec.store_version(dm, k, t, updater.offset)
@@ -133,15 +164,120 @@ class ModelVersions:
         for ev in r.events:
             self.record.event(ev.kind, k, t, ev.message, ev.payload())
             resync |= ev.kind == "resync"
+        if self._pending_poles is not None:
+            self._poll_poles(k, t, offload)
         if resync and self.config.retune and k >= self.config.n_ident:
-            mu = self.optimizer.retune_model(upd)
-            if mu is not None:
-                self._log_model_update(mu, k, t, kind="pole re-optimisation")
-            if (mu is None or not mu.accepted) and upd.digital_model.version == self.version:
-                self._consolidate(k, t)
+            if self._pending_poles is not None:
+                self.record.event("pole-retune", k, t, "resync while a pole re-optimisation "
+                                  f"(resync at sample {self._pending_poles.job.k}) runs: "
+                                  "skipped", {"k_submitted": self._pending_poles.job.k})
+            elif self._pole_async(upd, k, offload):
+                self._submit_poles(upd, k, t, offload)
+            else:
+                mu = self.optimizer.retune_model(upd)
+                if mu is not None:
+                    self._log_model_update(mu, k, t, kind="pole re-optimisation")
+                if (mu is None or not mu.accepted) and upd.digital_model.version == self.version:
+                    self._consolidate(k, t)
         dm = upd.digital_model
         if dm.version != self.version:
             self._new_version(dm, k, t, u_op, offload)
+
+    # ------------------------------------------------------------------ live pole re-optimisation
+    def prestart_poles(self, kind: str) -> None:
+        """Start the process worker of the live pole re-optimisation now (a thread: at first use).
+
+        A child process takes seconds to start and import on a loaded host; started with
+        the run, it is ready by the first resync of the closed loop.
+        """
+        if self.poles is None and kind == "process" and getattr(
+                self.optimizer, "retune_poles", False):
+            self.poles = PoleWorker(kind)
+            self.poles.prestart()
+
+    def resumed(self) -> None:
+        """A resumed run: read back where the stored run judged its live pole re-optimisations."""
+        rec = self.record
+        self._stored_poles = {}
+        if rec.run_id is None:
+            return
+        for ev in rec.history.events(rec.run_id):
+            p = ev.payload or {}
+            if ev.kind == "pole-retune" and "submitted" in p:
+                self._stored_poles.setdefault(int(p["k_submitted"]), -1)
+            elif (ev.kind in ("model-update", "model-rejected") and ev.k is not None
+                  and ev.message.startswith("pole re-optimisation")
+                  and p.get("k_submitted") is not None):
+                self._stored_poles[int(p["k_submitted"])] = int(ev.k)
+
+    def _pole_async(self, upd: Updater, k: int, offload: bool) -> bool:
+        """Whether the resync at ``k`` runs its pole re-optimisation in the worker (or replays one).
+
+        Live runs (``offload``) without a DNN estimator and with an optimizer whose
+        pole re-optimisation is on; a replay exactly where the stored run did.
+        """
+        if upd.dnn is not None or not getattr(self.optimizer, "retune_poles", False):
+            return False
+        if offload:
+            return hasattr(self.optimizer, "max_step_samples")
+        return self._stored_poles is not None and k in self._stored_poles
+
+    def _submit_poles(self, upd: Updater, k: int, t: float, offload: bool) -> None:
+        """Freeze the step test and start its candidate (in a replay: compute it now)."""
+        job = pole_job(self.optimizer, upd, k)
+        assert job is not None
+        self.record.event("pole-retune", k, t, f"pole re-optimisation of version "
+                          f"{job.version} submitted to the worker",
+                          {"k_submitted": k, "version": job.version, "submitted": True})
+        if offload:
+            if self.poles is None:
+                self.poles = PoleWorker(upd.worker)
+            self._pending_poles = self.poles.submit(job)
+            return
+        assert self._stored_poles is not None
+        at = self._stored_poles.get(k, -1)
+        self._pending_poles = PendingPoles(job, outcome=pole_candidate(job),
+                                           judge_at=None if at < 0 else at)
+
+    def _poll_poles(self, k: int, t: float, offload: bool) -> None:
+        """Judge the pending candidate once it is there (a replay: at the stored sample)."""
+        p = self._pending_poles
+        upd = self.updater
+        assert p is not None and upd is not None
+        if upd.digital_model.version != p.job.version:
+            self._pending_poles = None
+            self.record.event("model-rejected", k, t, "pole re-optimisation: discarded: "
+                              f"version {upd.digital_model.version} superseded version "
+                              f"{p.job.version}", {"k_submitted": p.job.k, "discarded": True})
+            return
+        if p.future is None:  # computed in a replay
+            if not (p.judge_at is not None and k >= p.judge_at
+                    or p.judge_at is None and offload):
+                return
+        elif self.poles is None or not self.poles.done(p):
+            return
+        out = p.outcome if p.future is None or self.poles is None else self.poles.outcome(p)
+        assert out is not None
+        self._pending_poles = None
+        mu = judge_pole_candidate(upd, p.job, out)
+        if mu is not None:
+            payload = {key: val for key, val in mu.payload().items() if key != "model"}
+            payload["worker_s"] = out.elapsed
+            self.record.event("model-update" if mu.accepted else "model-rejected", k, t,
+                              f"pole re-optimisation: {mu.reason}", payload)
+        else:
+            self.record.event("model-rejected", k, t, "pole re-optimisation: no candidate "
+                              f"({out.error or 'the fit failed'})",
+                              {"k_submitted": p.job.k, "worker_s": out.elapsed})
+        if (mu is None or not mu.accepted) and upd.digital_model.version == self.version:
+            self._consolidate(k, t)
+
+    def close(self) -> None:
+        """Stop the optimisation workers (the pending pole re-optimisation is dropped)."""
+        self._pending_poles = None
+        if self.poles is not None:
+            self.poles.close()
+        self.worker.close()
 
     def _consolidate(self, k: int, t: float) -> None:
         """A new version from the fast path if it predicts recent data clearly better."""
