@@ -23,8 +23,9 @@ class TwinEvent:
     kind : str
         ``'phase'``, ``'drift'``, ``'desync'``, ``'resync'``, ``'model-update'``,
         ``'model-rejected'``, ``'model-version'``, ``'controller'``,
-        ``'controller-rejected'``, ``'estimator-update'``, ``'estimator-rejected'`` or
-        ``'resume'``.
+        ``'controller-rejected'``, ``'estimator-update'``, ``'estimator-rejected'``,
+        ``'pole-retune'`` (a resync's pole re-optimisation handed to a worker; its verdict
+        follows as ``'model-update'`` or ``'model-rejected'``) or ``'resume'``.
     k : int
         Sample index.
     t : float
