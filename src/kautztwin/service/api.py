@@ -77,8 +77,8 @@ from .history_reader import HISTORY_SIGNALS, HistoryReader
 from .twin_view import ApiError, RateLimiter, TwinView, _num
 
 __all__ = ["ApiServer", "HttpThread", "ReidentifyRequest", "SetpointRequest", "WhatIfRequest",
-           "add_error_handlers", "bearer_guard", "create_app", "history_query",
-           "history_response", "who_wrote"]
+           "ReaderSlot", "add_error_handlers", "bearer_guard", "create_app", "history_query",
+           "history_response", "who_wrote", "write_guard"]
 
 _logger = logging.getLogger("kautztwin.service")
 
@@ -352,6 +352,85 @@ def who_wrote(request: Request, token: str | None) -> dict[str, Any]:
             "when": datetime.now(UTC).isoformat(timespec="milliseconds")}
 
 
+def write_guard(token: str | None, limiter: RateLimiter | None) -> Any:
+    """The dependency of writes: the token check, then the per-client rate limit.
+
+    Parameters
+    ----------
+    token : str or None
+        The API token (bearer); ``None``: loopback without a token.
+    limiter : RateLimiter or None
+        Limits writes per client (none when ``None``).
+
+    Returns
+    -------
+    callable
+        ``writer(request) -> dict``: who wrote (:func:`who_wrote`); raises
+        :class:`ApiError` 401 without the token and 429 over the limit.
+    """
+    guard = bearer_guard(token)
+
+    def writer(request: Request) -> dict[str, Any]:
+        guard(request)
+        who = who_wrote(request, token)
+        if limiter is not None and not limiter.allow(who["client"]):
+            raise ApiError(429, f"too many requests: at most {limiter.per_minute:g} writes a "
+                                "minute per client")
+        return who
+
+    return writer
+
+
+class ReaderSlot:
+    """One lazily opened store reader per server, closed with it (then reads answer 503).
+
+    Parameters
+    ----------
+    opener : callable
+        ``opener(key)`` opens a reader (an object with ``close()``) for ``key``.
+    """
+
+    def __init__(self, opener: Any) -> None:
+        self._opener = opener
+        self._reader: Any = None
+        self._key: Any = None
+        self._closed = False
+        self._lock = threading.Lock()
+
+    def get(self, key: Any = None) -> Any:
+        """The reader for ``key`` (reopened when the key changes).
+
+        Parameters
+        ----------
+        key : object, optional
+            What the reader reads (compared by identity).
+
+        Returns
+        -------
+        object
+            The reader.
+
+        Raises
+        ------
+        ApiError
+            503 once the server is stopping.
+        """
+        with self._lock:
+            if self._closed:
+                raise ApiError(503, "the service is stopping")
+            if self._reader is None or self._key is not key:
+                self._reader, self._key = self._opener(key), key
+            return self._reader
+
+    def close(self) -> None:
+        """Close the reader; later reads answer 503."""
+        with self._lock:
+            self._closed = True
+            reader, self._reader = self._reader, None
+        if reader is not None:
+            reader.close()
+
+
 def history_query(signals: str, start: float | None, end: float | None,
                   allowed: tuple[str, ...] = HISTORY_SIGNALS) -> list[str] | JSONResponse:
     """The checked signal names of a ``/history`` query, or its 422 answer.
@@ -539,42 +618,16 @@ def create_app(view: TwinView, *, token: str | None = None,
     add_error_handlers(app)
     _authorised = bearer_guard(token)
 
-    def _who(request: Request) -> dict[str, Any]:
-        return who_wrote(request, token)
-
     def reader(request: Request) -> None:
         """Dependency of the stream: the token when one is set."""
         _authorised(request)
 
-    def writer(request: Request) -> dict[str, Any]:
-        """Dependency of writes and what-ifs: the token, then the rate limit."""
-        _authorised(request)
-        who = _who(request)
-        if limiter is not None and not limiter.allow(who["client"]):
-            raise ApiError(429, f"too many requests: at most {limiter.per_minute:g} writes a "
-                                "minute per client")
-        return who
-
-    reads: dict[str, Any] = {"reader": None, "closed": False}
-    reads_lock = threading.Lock()
-
-    def _reader(history: Any) -> HistoryReader:
-        """The reader of the twin's store (closed with the server: then 503)."""
-        with reads_lock:
-            if reads["closed"]:
-                raise ApiError(503, "the service is stopping")
-            if reads["reader"] is None or reads["reader"].history is not history:
-                reads["reader"] = HistoryReader(history)
-            return reads["reader"]
-
-    def _close_reads() -> None:
-        with reads_lock:
-            reads["closed"] = True
-            reader, reads["reader"] = reads["reader"], None
-        if reader is not None:
-            reader.close()
-
-    app.state.close_reads = _close_reads
+    # dependency of writes and what-ifs: the token, then the rate limit
+    writer = write_guard(token, limiter)
+    # the reader of the twin's store (closed with the server: then 503)
+    reads = ReaderSlot(HistoryReader)
+    _reader = reads.get
+    app.state.close_reads = reads.close
 
     def _store() -> tuple[Any, int | None]:
         """The store and the run (``None`` before the run is opened: empty answers)."""

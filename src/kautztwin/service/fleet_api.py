@@ -38,7 +38,7 @@ import urllib.parse
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from fastapi import Depends, FastAPI, Query, Request
+from fastapi import Depends, FastAPI, Query
 from fastapi.responses import JSONResponse, Response
 
 from ..exceptions import DataError
@@ -46,15 +46,15 @@ from ..twin.history.setpoints import control_start, setpoint_segments, setpoints
 from .api import (
     MAX_PAGE,
     HttpThread,
+    ReaderSlot,
     SetpointRequest,
     _field_error,
     _json,
     _nums,
     add_error_handlers,
-    bearer_guard,
     history_query,
     history_response,
-    who_wrote,
+    write_guard,
 )
 from .config import _is_loopback, parse_bind
 from .fleet_view import FleetView
@@ -255,9 +255,6 @@ def create_fleet_app(view: FleetView, *, token: str | None = None,
     app.state.view = view
     service = view.service
     add_error_handlers(app)
-    guard = bearer_guard(token)
-    reads: dict[str, Any] = {"reader": None, "closed": False}
-    reads_lock = threading.Lock()
 
     def _fleet() -> Any:
         fleet = service.fleet
@@ -271,31 +268,12 @@ def create_fleet_app(view: FleetView, *, token: str | None = None,
             raise ApiError(404, f"asset: no asset {asset_id} (the fleet has assets 0 to {n - 1})")
         return asset_id
 
-    def writer(request: Request) -> dict[str, Any]:
-        """Dependency of writes: the token, then the rate limit."""
-        guard(request)
-        who = who_wrote(request, token)
-        if limiter is not None and not limiter.allow(who["client"]):
-            raise ApiError(429, f"too many requests: at most {limiter.per_minute:g} writes a "
-                                "minute per client")
-        return who
-
-    def _reader() -> FleetHistoryReader:
-        with reads_lock:
-            if reads["closed"]:
-                raise ApiError(503, "the service is stopping")
-            if reads["reader"] is None:
-                reads["reader"] = FleetHistoryReader(str(service.history_path))
-            return reads["reader"]
-
-    def _close_reads() -> None:
-        with reads_lock:
-            reads["closed"] = True
-            reader, reads["reader"] = reads["reader"], None
-        if reader is not None:
-            reader.close()
-
-    app.state.close_reads = _close_reads
+    # dependency of writes: the token, then the rate limit
+    writer = write_guard(token, limiter)
+    # the reader of the fleet's store (closed with the server: then 503)
+    reads = ReaderSlot(lambda _key: FleetHistoryReader(str(service.history_path)))
+    _reader = reads.get
+    app.state.close_reads = reads.close
 
     @app.get("/health", tags=["read"], response_model=None)
     async def health() -> Response:
