@@ -18,7 +18,7 @@ serves it with uvicorn in a thread (``kautztwin fleet serve --http
   re-identifications, desynchronisations, MPC failures, limit violations.
 
 The rules are the single twin's API's and come from the same code
-(:mod:`.api`): a bind off the loopback interface needs a token, with a token
+(:mod:`.http_common`): a bind off the loopback interface needs a token, with a token
 the writes need ``Authorization: Bearer TOKEN`` (401), writes are
 rate-limited per client (429), bad input is a 422 and an unknown asset a 404,
 each with a one-line JSON ``message``.  Reads of the history use read-only
@@ -41,24 +41,23 @@ import numpy as np
 from fastapi import Depends, FastAPI, Query
 from fastapi.responses import JSONResponse, Response
 
-from ..exceptions import DataError
 from ..twin.history.setpoints import control_start, setpoint_segments, setpoints_at
-from .api import (
+from .fleet_view import FleetView
+from .history_reader import HISTORY_SIGNALS
+from .http_common import (
     MAX_PAGE,
     HttpThread,
     ReaderSlot,
     SetpointRequest,
-    _field_error,
-    _json,
-    _nums,
     add_error_handlers,
+    field_error,
     history_query,
     history_response,
+    json_answer,
+    json_numbers,
+    server_address,
     write_guard,
 )
-from .config import _is_loopback, parse_bind
-from .fleet_view import FleetView
-from .history_reader import HISTORY_SIGNALS
 from .twin_view import ApiError, RateLimiter, _num
 
 __all__ = ["FleetApiServer", "FleetHistoryReader", "create_fleet_app"]
@@ -280,10 +279,10 @@ def create_fleet_app(view: FleetView, *, token: str | None = None,
         """Liveness: whether the loop runs, where it is, and whether it keeps its pace."""
         st = view.step()
         fleet = service.fleet
-        return _json({"status": "ok", "running": view.running, "k": st.get("k"),
-                      "n_assets": service.n_assets, "uptime_s": time.time() - view.started,
-                      "run_id": None if fleet is None else fleet.run_id,
-                      "loop": view.loop_timing()})
+        return json_answer({"status": "ok", "running": view.running, "k": st.get("k"),
+                            "n_assets": service.n_assets, "uptime_s": time.time() - view.started,
+                            "run_id": None if fleet is None else fleet.run_id,
+                            "loop": view.loop_timing()})
 
     @app.get("/assets", tags=["read"], response_model=None)
     async def assets(after: int = Query(-1, ge=-1, description="page cursor: ids > after"),
@@ -302,13 +301,13 @@ def create_fleet_app(view: FleetView, *, token: str | None = None,
                               else None}
             out["assets"] = [{"id": int(i), "in_sync": bool(in_sync[i]), "fit": f,
                               "version": int(ver[i])}
-                             for i, f in zip(ids.tolist(), _nums(fit[ids]), strict=True)]
+                             for i, f in zip(ids.tolist(), json_numbers(fit[ids]), strict=True)]
         else:
             out["summary"] = {"in_sync": None, "out_of_sync": None, "phase": "starting",
                               "median_fit": None}
             out["assets"] = [{"id": int(i), "in_sync": None, "fit": None, "version": None}
                              for i in ids.tolist()]
-        return _json(out)
+        return json_answer(out)
 
     @app.get("/assets/{asset_id}/state", tags=["read"], response_model=None)
     def state(asset_id: int) -> Response:
@@ -324,7 +323,7 @@ def create_fleet_app(view: FleetView, *, token: str | None = None,
                        counts=view.call(lambda svc: _asset_counts(svc.fleet, i))
                        if view.running else _asset_counts(fleet, i),
                        drawn=service.assets[i] if i < len(service.assets) else None)
-        return _json(out)
+        return json_answer(out)
 
     @app.get("/assets/{asset_id}/history", tags=["read"], response_model=None)
     async def history_(
@@ -361,8 +360,8 @@ def create_fleet_app(view: FleetView, *, token: str | None = None,
         mpc = fleet.config.mpc
         lo, hi = float(mpc.y_min), float(mpc.y_max)
         if not lo <= req.value <= hi:
-            return _field_error("value", f"set-point {req.value:g} is outside the limits "
-                                         f"[{lo:g}, {hi:g}]")
+            return field_error("value", f"set-point {req.value:g} is outside the limits "
+                                        f"[{lo:g}, {hi:g}]")
 
         def job(svc: Any) -> dict[str, Any]:
             k = svc.fleet.set_setpoint([i], req.value)
@@ -373,16 +372,16 @@ def create_fleet_app(view: FleetView, *, token: str | None = None,
             "who": who["who"], "asset": i, "value": req.value, "k_from": out["k_from"]}})
         view.add_event("api-setpoint", f"asset {i}: set-point {req.value:g} by {who['who']}",
                        asset=i, k=out["k_from"])
-        return _json({"id": i, "setpoint": req.value, **out, "who": who["who"],
-                      "when": who["when"]})
+        return json_answer({"id": i, "setpoint": req.value, **out, "who": who["who"],
+                            "when": who["when"]})
 
     @app.get("/fleet/metrics", tags=["read"], response_model=None)
     def metrics() -> Response:
         """Per-asset sync-fit distribution, re-identifications, desyncs, MPC, violations."""
         fleet = _fleet()
         if view.running:
-            return _json(view.call(lambda svc: _asset_metrics(svc.fleet)))
-        return _json(_asset_metrics(fleet))
+            return json_answer(view.call(lambda svc: _asset_metrics(svc.fleet)))
+        return json_answer(_asset_metrics(fleet))
 
     return app
 
@@ -415,9 +414,7 @@ class FleetApiServer:
 
     def __init__(self, service: Any, *, bind: str | None = None, token: str | None = None,
                  rate_limit: float = 60.0) -> None:
-        self.host, self.port = parse_bind(bind) if bind is not None else ("127.0.0.1", 0)
-        if bind is not None and not _is_loopback(self.host) and token is None:
-            raise DataError(f"http.bind {bind!r} is not a loopback address: set an API token")
+        self.host, self.port = server_address(bind, token)
         self.bind = bind
         self._token = token
         self.view = FleetView(service)
