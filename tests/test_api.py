@@ -265,9 +265,11 @@ def test_whatif_bad_bodies(live, body, field):
 
 def test_whatif_rejects_non_finite_inputs(live):
     _, c = live
-    r = c.post("/whatif", content='{"u": [NaN]}', headers={**AUTH, "Content-Type":
-                                                            "application/json"})
-    assert r.status_code == 422
+    for text in ('{"u": [NaN]}', '{"u": [Infinity]}', '{"u": -Infinity}',
+                 '{"value": Infinity}'):
+        path = "/setpoint" if "value" in text else "/whatif"
+        r = c.post(path, content=text, headers={**AUTH, "Content-Type": "application/json"})
+        assert r.status_code == 422, (text, r.text)
 
 
 # ---------------------------------------------------------------------- writes
@@ -500,7 +502,10 @@ def test_dashboard_is_served(live):
           suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(body=st.dictionaries(st.sampled_from(["u", "setpoint", "steps", "value", "reason", "x"]),
                             st.one_of(st.none(), st.booleans(), st.integers(-10**9, 10**9),
-                                      st.floats(allow_nan=False), st.text(max_size=5),
+                                      # JSON has no inf (httpx refuses to send it): the
+                                      # non-finite tokens are posted raw in the test above
+                                      st.floats(allow_nan=False, allow_infinity=False),
+                                      st.text(max_size=5),
                                       st.lists(st.floats(-2, 2), max_size=5)),
                             max_size=3),
        path=st.sampled_from(["/whatif", "/setpoint", "/reidentify"]))
@@ -538,10 +543,9 @@ def test_non_loopback_bind_needs_a_token(tmp_path, monkeypatch):
 
 def test_cli_refuses_a_public_bind_without_token(capsys, tmp_path, monkeypatch):
     monkeypatch.delenv("KAUTZTWIN_HTTP_TOKEN", raising=False)
-    t0 = time.monotonic()
     assert main(["twin", "serve", "--plant", "hydraulic", "--http", "0.0.0.0:8000",
                  "--out", str(tmp_path)]) == 2
-    assert time.monotonic() - t0 < 10
+    assert not list(tmp_path.iterdir())  # refused before anything ran: no store, no report
     err = [line for line in capsys.readouterr().err.strip().splitlines()
            if "level=" not in line]
     assert len(err) == 1 and err[0].startswith("kautztwin: error: http.bind"), err

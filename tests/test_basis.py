@@ -688,3 +688,20 @@ def test_discretize_needs_positive_dt(dt):
 def test_discretize_discrete_basis_raises():
     with pytest.raises(PoleError, match="continuous-time bases only"):
         kt.LaguerreBasis(pole=0.5, n=2, dt=0.1).discretize(0.1)
+
+
+def test_a_basis_pickles_to_an_equal_immutable_copy():
+    # what crosses to a worker process (the twin's MPC retuning): rebuilt as the original was
+    import pickle
+
+    from kautztwin.basis import KautzBasis, LaguerreBasis
+
+    for basis in (LaguerreBasis(pole=-1.0, n=4),
+                  KautzBasis([0.5 + 0.3j, 0.5 - 0.3j, 0.9], dt=0.1, delayed=True),
+                  KautzBasis([-1.0, -2.0 + 1.0j, -2.0 - 1.0j])):
+        copy = pickle.loads(pickle.dumps(basis))
+        assert type(copy) is type(basis) and copy.dt == basis.dt
+        for name in ("A", "B", "poles"):
+            np.testing.assert_array_equal(getattr(copy, name), getattr(basis, name))
+        with pytest.raises(AttributeError, match="immutable"):
+            copy._dt = 1.0

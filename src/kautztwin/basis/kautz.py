@@ -46,6 +46,14 @@ def _readonly(x: NDArray) -> NDArray:
     return x
 
 
+def _rebuild_basis(cls: type, kinds: tuple[str, ...], params: NDArray, dt: float,
+                   delayed: bool) -> KautzBasis:
+    """Unpickle a :class:`KautzBasis` (or subclass) from its block kinds and parameters."""
+    obj = cls.__new__(cls)
+    obj._init(tuple(kinds), np.asarray(params, dtype=float), float(dt), bool(delayed))
+    return obj
+
+
 class KautzBasis:
     r"""Orthonormal Kautz basis with any mix of real poles and complex pairs.
 
@@ -161,6 +169,11 @@ class KautzBasis:
         raise AttributeError(
             f"{type(self).__name__} is immutable; use with_poles() for a new basis"
         )
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        """Pickle by block kinds and parameters: the copy is built as the original was."""
+        return (_rebuild_basis, (type(self), self._kinds, np.array(self._params), self._dt,
+                                 self._delayed))
 
     # ------------------------------------------------------------------ properties
     @property

@@ -32,18 +32,15 @@ import logging
 import math
 import os
 import sqlite3
-import threading
 import time
-import urllib.parse
 from typing import Annotated, Any, Literal
 
 import numpy as np
 from fastapi import Depends, FastAPI, Query
 from fastapi.responses import JSONResponse, Response
 
-from ..twin.history.setpoints import control_start, setpoint_segments, setpoints_at
 from .fleet_view import FleetView
-from .history_reader import HISTORY_SIGNALS
+from .history_reader import HISTORY_SIGNALS, ReadOnlyPages, page_columns, window_query
 from .http_common import (
     MAX_PAGE,
     HttpThread,
@@ -65,7 +62,7 @@ __all__ = ["FleetApiServer", "FleetHistoryReader", "create_fleet_app"]
 _logger = logging.getLogger("kautztwin.service")
 
 
-class FleetHistoryReader:
+class FleetHistoryReader(ReadOnlyPages):
     """Pages of one asset's stored samples, on read-only connections of its own (one a thread).
 
     Parameters
@@ -75,26 +72,7 @@ class FleetHistoryReader:
     """
 
     def __init__(self, path: str) -> None:
-        self.path = os.path.abspath(path)
-        self._local = threading.local()
-        self._lock = threading.Lock()
-        self._connections: list[sqlite3.Connection] = []
-        self._closed = False
-        self._config: dict[int, Any] = {}
-
-    def _connection(self) -> sqlite3.Connection:
-        conn = getattr(self._local, "conn", None)
-        if conn is None:
-            uri = f"file:{urllib.parse.quote(self.path)}?mode=ro"
-            conn = sqlite3.connect(uri, uri=True, timeout=5.0, isolation_level=None,
-                                   check_same_thread=False)
-            with self._lock:
-                if self._closed:
-                    conn.close()
-                    raise ApiError(503, "the history store is closed")
-                self._connections.append(conn)
-            self._local.conn = conn
-        return conn
+        super().__init__(os.path.abspath(path))
 
     def page(self, run_id: int, asset: int, signals: list[str], *, after: int = -1,
              start: float | None = None, end: float | None = None,
@@ -121,57 +99,21 @@ class FleetHistoryReader:
         """
         if self._closed:
             raise ApiError(503, "the history store is closed")
-        query = ("SELECT k, t, u, y, flags, y_pred FROM fleet_samples WHERE run_id = ? "
-                 "AND asset = ? AND k > ?")
-        args: list[Any] = [run_id, asset, after]
-        if start is not None:
-            query += " AND t >= ?"
-            args.append(start)
-        if end is not None:
-            query += " AND t <= ?"
-            args.append(end)
-        conn = self._connection()
-        try:
-            conn.execute("BEGIN")  # one snapshot for the page
-            try:
-                rows = conn.execute(query + " ORDER BY k LIMIT ?", (*args, limit + 1)).fetchall()
-                config = self._config.get(run_id)
-                if config is None:
-                    import json
+        query, args = window_query(
+            "SELECT k, t, u, y, flags, y_pred FROM fleet_samples WHERE run_id = ? AND asset = ?",
+            [run_id, asset], after, start, end, limit)
 
-                    row = conn.execute("SELECT config FROM fleet_runs WHERE run_id = ?",
-                                       (run_id,)).fetchone()
-                    config = self._config[run_id] = json.loads(row[0]) if row else {}
-                sps = conn.execute(
-                    "SELECT k_from, t, value FROM fleet_setpoints WHERE run_id = ? AND asset = ? "
-                    "ORDER BY k_from, rowid", (run_id, asset)).fetchall()
-            finally:
-                conn.execute("COMMIT")
-        except sqlite3.Error as exc:
-            raise ApiError(503, f"cannot read the history store: {exc}") from None
-        more = len(rows) > limit
-        rows = rows[:limit]
-        columns = list(zip(*rows, strict=True)) if rows else [()] * 6
-        cols: dict[str, Any] = {"k": np.array(columns[0], dtype=np.int64),
-                                "flags": np.array(columns[4], dtype=np.int64)}
-        for i, name in ((1, "t"), (2, "u"), (3, "y"), (5, "prediction")):
-            cols[name] = np.array([math.nan if v is None else v for v in columns[i]],
-                                  dtype=float)
-        if "setpoint" in signals:
-            dt, k_control = control_start(config)
-            events = [("api-setpoint", k, t, {"value": v, "k_from": k}) for k, t, v in sps]
-            cols["setpoint"] = setpoints_at(setpoint_segments(config, events), cols["k"],
-                                            cols["t"], dt, k_control)
-        nxt = int(cols["k"][-1]) if more and rows else None
-        return {s: cols[s] for s in signals}, nxt
+        def read(conn: sqlite3.Connection) -> tuple[list[Any], Any, list[Any]]:
+            rows = conn.execute(query, args).fetchall()
+            config = self._run_config(conn, "fleet_runs", run_id)
+            sps = conn.execute(
+                "SELECT k_from, t, value FROM fleet_setpoints WHERE run_id = ? AND asset = ? "
+                "ORDER BY k_from, rowid", (run_id, asset)).fetchall()
+            return rows, config, sps
 
-    def close(self) -> None:
-        """Close every connection (later pages: 503)."""
-        with self._lock:
-            self._closed = True
-            conns, self._connections = self._connections, []
-        for c in conns:
-            c.close()
+        rows, config, sps = self._snapshot(read)
+        events = [("api-setpoint", k, t, {"value": v, "k_from": k}) for k, t, v in sps]
+        return page_columns(rows, signals, limit, config, events)
 
 
 def _asset_metrics(fleet: Any) -> dict[str, Any]:

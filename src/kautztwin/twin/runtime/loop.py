@@ -358,6 +358,8 @@ class DigitalTwin:
             self._versions.resumed()  # where the stored run judged its live pole retunings
         if self.background and cfg.retune:
             self._versions.prestart_poles(str(cfg.updater.get("worker", "thread")))
+        if self.background and cfg.controlled:
+            self._versions.worker.prestart()  # a process worker's child: ready by the first tuning
         if self._replay.rows is not None and not self._replayable:
             self._k_cl_stored = self._stored_closed_loop()
         self._started = True

@@ -95,7 +95,7 @@ class ModelVersions:
         self.worker = OptimizationWorker(
             optimizer, event=record.event, install=self.control.install,
             apply_tuning=self.control.apply_tuning, apply_retraining=self.apply_retraining,
-            context=self.control.context,
+            context=self.control.context, kind=str(config.updater.get("worker", "thread")),
         )
         self._on_estimator = on_estimator
         self.poles: PoleWorker | None = None  # the worker of the live pole re-optimisation
