@@ -1136,7 +1136,9 @@ def main(argv: list[str] | None = None) -> int:
     started = time.perf_counter()
     result: dict[str, Any] = {
         "benchmark": "identification",
-        "command": "python benchmarks/identification.py" + (" --quick" if args.quick else ""),
+        "command": "python benchmarks/identification.py"
+        + (" --quick" if args.quick else "")
+        + (f" --carry-unavailable {args.carry_unavailable}" if args.carry_unavailable else ""),
         "quick": args.quick,
         "date": utc_now(),
         "machine": machine_info(),

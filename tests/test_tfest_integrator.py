@@ -78,9 +78,45 @@ def test_integrating_model_reports_infinite_gain_and_is_json_ready(auto_fit):
     json.dumps(to_jsonable(d))  # inf -> null
 
 
+def test_stable_structures_challenge_the_integrating_pick_without_changing_it(auto_fit):
+    # the integrating search runs first; the stable structures, screened until their pick
+    # settles, come nowhere near its criterion and are not refined; the model returned is
+    # the one the integrating search alone (integrator=True) finds
+    est, rec, _ = auto_fit
+    info = est.search_["integrator"]
+    assert info["tried"] and info["chosen"] and info["stable_refined"] is False
+    assert info["stable_criterion"] < info["criterion"] - 2.0
+    stable = info["stable_search"]
+    assert "unrefined" in stable and not stable["refined"]
+    assert stable["screened_to"] < stable["bound"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        alone = TransferFunctionEstimator("auto", integrator=True).fit(rec).model_
+    m = est.model_
+    np.testing.assert_array_equal(m.den, alone.den)
+    np.testing.assert_array_equal(m.num, alone.num)
+    assert m.input_level == alone.input_level
+
+
+def test_the_search_bound_counts_the_integrator():
+    # G of G(s)/s is searched up to one pole less than the stable structures: the bound is
+    # on the model's poles, as n_poles with integrator=True counts the integrator
+    from kautztwin.ident.tfest.integrator import inner_estimator
+    from kautztwin.ident.tfest.structure import search_bound
+
+    rec, _ = integrating_record()
+    for max_order in (None, 5):
+        tf = TransferFunctionEstimator("auto", max_order=max_order)
+        stable, _ = search_bound(tf, [rec])
+        inner, why = search_bound(inner_estimator(tf), [integrated(rec, LEVEL)])
+        assert inner == stable - 1 and "integrator" in why
+
+
 def test_fixed_order_with_integrator_true_recovers_the_plant():
     rec, _ = integrating_record(seed=1)
-    m = TransferFunctionEstimator(2, 0, integrator=True).fit(rec).model_
+    est = TransferFunctionEstimator(2, 0, integrator=True).fit(rec)
+    m = est.model_
+    assert est.n_evaluations_ > 0  # the fit of G on the integrated input is counted
     np.testing.assert_allclose(m.den, [1.0, 1.0, 0.0], atol=0.02)
     np.testing.assert_allclose(m.num, [2.0], rtol=0.02)
     assert m.input_level == pytest.approx(LEVEL, abs=0.01)

@@ -132,5 +132,6 @@ def fit_integrating(tf: TransferFunctionEstimator, recs: list[Record], est: list
     inner = inner_estimator(tf)
     g = fit_order(inner, [integrated(r, mean) for r in recs],
                   [integrated(r, mean) for r in est], n - 1, m)
+    tf.n_evaluations_ += inner.n_evaluations_
     level = input_level(inner, g, [integrated(r, mean) for r in est], mean)
     return integrating_model(tf, recs, est, g, level)

@@ -71,13 +71,18 @@ def _companion(den: NDArray) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
 
 
 def _weighted_lstsq(N: NDArray, y: NDArray, sw: NDArray) -> NDArray[np.float64]:
-    """``argmin_c || sw * (y - N c) ||`` with column scaling (empty ``N``: no parameters)."""
+    """``argmin_c || sw * (y - N c) ||`` with column scaling (empty ``N``: no parameters).
+
+    ``y`` may have several columns (one solution column each).
+    """
     if N.shape[1] == 0:
-        return np.zeros(0)
+        return np.zeros((0,) + y.shape[1:])
     Nw = N * sw[:, None]
     sc = np.linalg.norm(Nw, axis=0)
     sc[sc == 0] = 1.0
-    return np.linalg.lstsq(Nw / sc, y * sw, rcond=None)[0] / sc
+    yw = y * (sw if y.ndim == 1 else sw[:, None])
+    c = np.linalg.lstsq(Nw / sc, yw, rcond=None)[0]
+    return c / (sc if y.ndim == 1 else sc[:, None])
 
 
 def _orth(M: NDArray) -> NDArray[np.float64]:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import inspect
 import warnings
 from typing import TYPE_CHECKING, Any
 
@@ -18,6 +19,9 @@ from .statistics import finalize
 
 if TYPE_CHECKING:
     from .estimator import TransferFunctionEstimator
+
+#: ``least_squares`` takes a callback that can stop it (SciPy >= 1.16)
+_HAS_CALLBACK = "callback" in inspect.signature(scipy.optimize.least_squares).parameters
 
 
 def fit_order(tf: TransferFunctionEstimator, recs: list[Record], est: list[Record], n: int,
@@ -51,8 +55,8 @@ def check_samples(tf: TransferFunctionEstimator, est: list[Record], n: int, m: i
 
 def refine_order(tf: TransferFunctionEstimator, est: list[Record], n: int, m: int, *,
                  starts: list[tuple[NDArray, float]] | None = None, multistart: bool = False,
-                 max_iter: int | None = None, min_rate: float | None = None
-                 ) -> tuple[_Problem, NDArray, float, Any]:
+                 max_iter: int | None = None, min_rate: float | None = None,
+                 stop_unresolved: bool = False) -> tuple[_Problem, NDArray, float, Any]:
     """Output-error refinement of order ``n``: the problem, denominator, delay and solution.
 
     Without ``starts`` the starts are the orthonormal-basis ones (:func:`fit_order`).
@@ -60,7 +64,9 @@ def refine_order(tf: TransferFunctionEstimator, est: list[Record], n: int, m: in
     refined alone (``tf.max_iter`` iterations, or ``max_iter`` residual
     evaluations besides the Jacobians for a brief refinement); with
     ``multistart=True`` they join the orthonormal-basis starts.  ``min_rate``
-    replaces the slowest allowed pole rate ``0.01 / record length``.
+    replaces the slowest allowed pole rate ``0.01 / record length``; with
+    ``stop_unresolved`` a refinement from ``starts`` stops at the first iterate
+    with a pole slower than ``min_rate`` (see :func:`_refine_from`).
     """
     prob = _Problem(est, n, m, intersample=tf.intersample, offset=bool(tf.offset),
                     initial_state=tf.initial_state, trend=_trend(tf))
@@ -92,8 +98,9 @@ def refine_order(tf: TransferFunctionEstimator, est: list[Record], n: int, m: in
     if starts is not None and not multistart:
         nfev = int(tf.max_iter) * (lo.size + 1) if max_iter is None else int(max_iter)
         den, tau, sol = _refine_from(tf, prob, starts, n, lo, hi, unpack, fun, clip, dt,
-                                     estimate_delay, nfev)
-        if not sol.success and max_iter is None:
+                                     estimate_delay, nfev,
+                                     min_rate=min_rate if stop_unresolved else None)
+        if not sol.success and max_iter is None and sol.status != -2:
             warnings.warn(f"the output-error refinement did not converge: {sol.message}",
                           ConvergenceWarning, stacklevel=4)
         _warn_slow_poles(den, rate_lo, "0.01 / record length" if min_rate is None
@@ -159,26 +166,56 @@ def refine_order(tf: TransferFunctionEstimator, est: list[Record], n: int, m: in
 def _refine_from(tf: TransferFunctionEstimator, prob: _Problem,
                  starts: list[tuple[NDArray, float]], n: int, lo: NDArray, hi: NDArray,
                  unpack: Any, fun: Any, clip: Any, dt: float, estimate_delay: bool,
-                 max_nfev: int) -> tuple[NDArray, float, Any]:
-    """Refine the best of given (poles, delay) starts to convergence (no multi-start)."""
+                 max_nfev: int, min_rate: float | None = None) -> tuple[NDArray, float, Any]:
+    """Refine the best of given (poles, delay) starts to convergence (no multi-start).
+
+    With ``min_rate`` (the structure search's refinement of its pick to
+    convergence) the refinement stops at the first iterate with a pole slower
+    than ``min_rate``: the search rejects such a model (a mode the records
+    cannot resolve), and a refinement to convergence that reached one was not
+    seen to leave it again; the iterate is returned as it is
+    (``sol.status == -2``).  Brief refinements do return from there at times
+    (a few iterations through the slow region, then back), so they are never
+    stopped.  Needs SciPy >= 1.16 (``least_squares``' callback); with an older
+    SciPy the refinement runs to its end.
+    """
+    # the residual of the chosen start is the refinement's first evaluation: kept, not redone
+    seen: dict[bytes, NDArray] = {}
+
+    def cost(x: NDArray) -> float:
+        r = seen[x.tobytes()] = fun(x)
+        return float(np.sum(r**2))
+
+    def first(x: NDArray) -> NDArray:
+        r = seen.pop(np.asarray(x, dtype=float).tobytes(), None) if seen else None
+        return fun(x) if r is None else r.copy()
+
     xs = []
     for poles, tau in starts:
         th = np.clip(_theta_from_poles(poles, n), lo[:n] + 1e-6, hi[:n] - 1e-6)
         xs.append(clip(np.append(th, tau) if estimate_delay else th))
-    costs = [float(np.sum(fun(x) ** 2)) for x in xs]
-    x0 = xs[int(np.argmin(costs))]
+    x0 = xs[0] if len(xs) == 1 else xs[int(np.argmin([cost(x) for x in xs]))]
     if estimate_delay:  # the delay of the best start on a grid about it, as fit_order does
         grid = np.unique(np.concatenate([x0[-1] + dt * np.arange(-3, 4),
                                          np.linspace(lo[-1], hi[-1], 9)]))
         grid = grid[(grid >= lo[-1]) & (grid <= hi[-1])]
-        costs = [float(np.sum(fun(clip(np.append(x0[:n], g))) ** 2)) for g in grid]
-        x0 = clip(np.append(x0[:n], grid[int(np.argmin(costs))]))
+        cands = [clip(np.append(x0[:n], g)) for g in grid]
+        x0 = cands[int(np.argmin([cost(x) for x in cands]))]
+    x0 = np.asarray(x0, dtype=float)
+    seen = {k: v for k, v in seen.items() if k == x0.tobytes()}
     x_scale = np.ones(lo.size)
     if estimate_delay:
         x_scale[-1] = dt
+    kw: dict[str, Any] = {}
+    if min_rate is not None and _HAS_CALLBACK:
+        def unresolved(intermediate_result: Any) -> None:
+            if np.min(-np.roots(unpack(intermediate_result.x)[0]).real) < min_rate:
+                raise StopIteration
+
+        kw["callback"] = unresolved
     best = scipy.optimize.least_squares(
-        fun, x0, bounds=(lo, hi), method="trf", x_scale=x_scale,
-        ftol=tf.tol, xtol=tf.tol, gtol=tf.tol, max_nfev=max_nfev,
+        first, x0, bounds=(lo, hi), method="trf", x_scale=x_scale,
+        ftol=tf.tol, xtol=tf.tol, gtol=tf.tol, max_nfev=max_nfev, **kw,
     )
     tf.n_evaluations_ += prob.n_eval
     prob.n_eval = 0

@@ -13,9 +13,11 @@ The search, for orders :math:`n = 1 \dots n_\max` (the *bound*, :func:`search_bo
    initial states by linear least squares, so each start is a complete model;
    with a delay to estimate, the delay is tuned on a small grid.
 2. **Criterion** (:class:`_Scorer`) of every start and number of zeros (one
-   more linear solve each): with a validation part (``validate_from``) the
-   validation fit; else, for input/output records, the fit on the last third
-   of each estimation record of the model estimated on the first two thirds
+   more small solve each, from one QR factorisation of the projected
+   regressors; the training RSS of the full numerator is the start's cost):
+   with a validation part (``validate_from``) the validation fit; else, for
+   input/output records, the fit on the last third of each estimation record
+   of the model estimated on the first two thirds
    (initial states and slow modes cost what they cost out of sample); for
    several records that start at rest, each record held out in turn.
    With the internal split a structure is represented by its *estimate*, the
@@ -28,9 +30,11 @@ The search, for orders :math:`n = 1 \dots n_\max` (the *bound*, :func:`search_bo
 3. **Refinement** (:func:`~.refine.refine_order`): brief output-error
    refinements of the best structures of the pick's order and its neighbours
    (with the internal split: the pick's order and the one below; repeated
-   while the pick moves), warm started from the lower orders; then
-   the pick to convergence, also from VARPRO poles of the high-order ARX
-   model's impulse response.  Refined models join the candidates.
+   while the pick moves, skipping orders the pick has left), warm started
+   from the lower orders; then the pick to convergence, also from VARPRO
+   poles of the high-order ARX model's impulse response (that last
+   refinement stops at an iterate with a mode slower than the records: the
+   criterion rejects such a model).  Refined models join the candidates.
 4. **Choice** (:meth:`_Search.pick`): the best criterion minus a small
    per-pole margin, so a higher order is returned only if it scores above every
    lower order (never one that validates worse on the data it was chosen on).
@@ -38,9 +42,12 @@ The search, for orders :math:`n = 1 \dots n_\max` (the *bound*, :func:`search_bo
    records.  A pick at the bound warns.
 5. **Integrator** (:func:`search_structure`, :mod:`.integrator`): when the
    high-order ARX model has a mode slower than the records (an integrating
-   plant), steps 1-4 run again for ``G(s)/s``, ``G`` on the integrated input
-   with a trend per record for the unknown input level; the integrating model
-   is returned if its criterion is better by the per-pole margin.
+   plant), steps 1-4 run first for ``G(s)/s``, ``G`` on the integrated input
+   with a trend per record for the unknown input level; the stable structures
+   then challenge that pick: screened until two orders in a row do not improve
+   their pick, and refined only if their screened pick comes within ``_NEAR``
+   points of the integrating criterion.  The integrating model is returned if
+   its criterion is better by the per-pole margin.
 
 Size: over 600 lines because screening, scoring and refinement share the
 candidate bookkeeping of one search; the parts are separate classes
@@ -110,8 +117,9 @@ _INNER = 2.0 / 3.0
 _NESTED = 0.1
 #: with the internal split, screening stops after this many orders without a better pick
 _PATIENCE = 2
-#: samples of the impulse response given to VARPRO
-_VARPRO_SAMPLES = 120
+#: samples of the impulse response given to VARPRO, and its budget (``optimize_poles``'
+#: ``max_iter``: ``parameters + 1`` residual evaluations besides the Jacobians)
+_VARPRO_SAMPLES, _VARPRO_ITER = 120, 1
 
 
 @dataclass
@@ -149,6 +157,8 @@ def search_bound(tf: TransferFunctionEstimator, est: list[Record]) -> tuple[int,
     beyond ``MIN_BOUND * SAMPLES_PER_ORDER`` (at most ``MAX_BOUND``), or
     ``max_order`` when given; then lowered until the estimation samples are at
     least three times the parameters (zeros ``n - 1``, offsets, initial states).
+    For ``G`` of an integrating model ``G(s)/s`` (:mod:`.integrator`) the bound
+    counts the integrator, as ``n_poles`` does: ``G`` has one pole less.
     """
     n_samples = sum(r.n_samples for r in est)
     if tf.max_order is None:
@@ -158,6 +168,9 @@ def search_bound(tf: TransferFunctionEstimator, est: list[Record]) -> tuple[int,
     else:
         bound = int(tf.max_order)
         why = f"max_order = {bound}"
+    if _trend(tf):
+        bound = max(1, bound - 1)
+        why += f" poles with the integrator: G has at most {bound}"
     n = bound
     while n > 1 and 3 * n_parameters(tf, est, n, n - 1) > n_samples:
         n -= 1
@@ -318,6 +331,10 @@ class _Scorer:
         self.slowest: float | None = None
         self.n_eval = 0
 
+    def unresolved(self, den: NDArray) -> bool:
+        """Whether ``den`` has a mode slower than the records resolve (scored ``-inf``)."""
+        return self.slowest is not None and bool(np.min(-np.roots(den).real) < self.slowest)
+
     def per_sample_spread(self) -> None:
         """Score the test rows on the scale of the whole records (their spread per weight)."""
         spread = weight = 0.0
@@ -340,34 +357,55 @@ class _Scorer:
         except (np.linalg.LinAlgError, ValueError):
             return {m: (-math.inf, math.nan, math.inf) for m in ms}
 
-    def _fold(self, cols: list[tuple[NDArray, NDArray]], m: int, train: list[NDArray],
-              test: list[NDArray]) -> tuple[NDArray, bool]:
-        """Sums (test error, test spread, train error, train spread); numerator finite."""
+    def _fold(self, cols: list[tuple[NDArray, NDArray]], ms: list[int], train: list[NDArray],
+              test: list[NDArray]) -> dict[int, tuple[NDArray, bool]]:
+        """For every ``m``: sums (test error, test spread, train error, train spread), finite.
+
+        The nuisance columns are projected out of the numerator regressors once
+        for all numbers of zeros: the regressors of ``m`` zeros are the first
+        ``m + 1`` columns and the projection acts column by column.  One QR
+        factorisation of the (column-scaled) projected regressors then gives
+        every numerator: the least-squares problem of the first ``k`` columns
+        is the ``k x k`` triangular block against the first ``k`` rotated
+        targets (solved by ``lstsq`` with the cut-off of the full problem).
+        The per-record maps from the numerator to the nuisance parameters are
+        linear too (``c = C_y - C_R b``), so all simulated outputs are one
+        product.
+        """
         Rt, yt = [], []
-        for (R, N), y, sw, tr in zip(cols, self.y, self.sw, train, strict=True):
-            if not tr.any():
-                continue
-            Rm, s = R[tr][:, : m + 1] * sw[tr, None], sw[tr]
-            Q = _orth(N[tr] * s[:, None])
-            Rt.append(Rm - Q @ (Q.T @ Rm))
-            yw = y[tr] * s
-            yt.append(yw - Q @ (Q.T @ yw))
+        maps = []
+        for (R, N), y, sw, tr, te in zip(cols, self.y, self.sw, train, test, strict=True):
+            if tr.any():
+                s = sw[tr]
+                Q = _orth(N[tr] * s[:, None])
+                Rm, yw = R[tr] * s[:, None], y[tr] * s
+                Rt.append(Rm - Q @ (Q.T @ Rm))
+                yt.append(yw - Q @ (Q.T @ yw))
+            use = tr if tr.any() else te
+            maps.append(_weighted_lstsq(N[use], np.column_stack([y[use], R[use]]), sw[use]))
         Rs, ys = np.vstack(Rt), np.concatenate(yt)
         scale = np.linalg.norm(Rs, axis=0)
         scale[scale == 0] = 1.0
-        b = np.linalg.lstsq(Rs / scale, ys, rcond=None)[0] / scale
-        sums = np.zeros(4)
-        for (R, N), y, sw, tr, te in zip(cols, self.y, self.sw, train, test, strict=True):
-            use = tr if tr.any() else te
-            c = _weighted_lstsq(N[use], y[use] - R[use][:, : m + 1] @ b, sw[use])
-            yh = R[:, : m + 1] @ b + N @ c
+        Qr, Tr = np.linalg.qr(Rs / scale)
+        qy = Qr.T @ ys
+        eps = np.finfo(float).eps
+        B = np.zeros((Rs.shape[1], len(ms)))
+        for j, m in enumerate(ms):
+            k = m + 1
+            B[:k, j] = np.linalg.lstsq(Tr[:k, :k], qy[:k], rcond=eps * max(Rs.shape[0], k)
+                                       )[0] / scale[:k]
+        sums = np.zeros((len(ms), 4))
+        for (R, N), y, sw, tr, te, C in zip(cols, self.y, self.sw, train, test, maps,
+                                             strict=True):
+            Yh = R @ B + N @ (C[:, :1] - C[:, 1:] @ B)
             for k, mask in ((0, te), (2, tr)):
                 if mask.any():
                     w = sw[mask] ** 2
                     ym = y[mask]
-                    sums[k] += float(np.sum(w * (ym - yh[mask]) ** 2))
-                    sums[k + 1] += float(np.sum(w * (ym - np.sum(w * ym) / np.sum(w)) ** 2))
-        return sums, bool(np.all(np.isfinite(b)))
+                    sums[:, k] += w @ (ym[:, None] - Yh[mask]) ** 2
+                    sums[:, k + 1] += float(np.sum(w * (ym - np.sum(w * ym) / np.sum(w)) ** 2))
+        finite = np.all(np.isfinite(B), axis=0)
+        return {m: (sums[j], bool(finite[j])) for j, m in enumerate(ms)}
 
     def _score(self, den: NDArray, tau: float, ms: list[int]
                ) -> dict[int, tuple[float, float, float]]:
@@ -377,19 +415,18 @@ class _Scorer:
                         trend=_trend(self.tf))
         cols = prob.all_columns(den, tau)
         self.n_eval += 1
-        unresolved = self.slowest is not None and np.min(-np.roots(den).real) < self.slowest
+        unresolved = self.unresolved(den)
+        folds = [self._fold(cols, ms, train, test) for train, test in self.folds]
         out = {}
         for m in ms:
             err = spread = 0.0
             ok = True
-            first = None
-            for train, test in self.folds:
-                sums, fin = self._fold(cols, m, train, test)
+            for per_m in folds:
+                sums, fin = per_m[m]
                 ok = ok and fin
                 err += sums[0]
                 spread += sums[1]
-                first = sums if first is None else first
-            assert first is not None
+            first = folds[0][m][0]
             if self.relative_to is not None:
                 spread = self.relative_to * self.w_test
             crit = 100.0 * (1.0 - math.sqrt(err / spread)) if spread > 0 else -math.inf
@@ -460,6 +497,15 @@ class _Search:
         self.slow_rate = 2.0 / span
         self.screened_to = self.bound
         self.slow_mode = False
+        #: the scorer's first-fold training rows are exactly ``fit_recs`` (set by the caller):
+        #: a start's cost is then its training RSS with the full numerator, no extra simulation
+        self.cost_from_score = False
+        #: screening stops after ``_PATIENCE`` orders without a better pick (a challenger
+        #: family, :func:`search_structure`; always with ``honest``)
+        self.patience = False
+        #: set by :meth:`run` when a challenger's screened pick was not refined
+        self.unrefined = False
+        self._reduced: dict[int, NDArray] | None = None
 
     def zeros_for(self, n: int) -> list[int]:
         ms = ([min(int(self.tf.n_zeros), n - 1)] if self.tf.n_zeros is not None
@@ -504,16 +550,15 @@ class _Search:
 
         With ``self.honest`` the screening stops once ``_PATIENCE`` orders in a
         row have not raised the best ``criterion - per_pole * n`` of the
-        estimates (:meth:`estimates`).
+        estimates (:meth:`estimates`); with ``self.patience`` likewise, of all
+        candidates.
         """
-        n_uniform = sum(u.size for u, _ in self.segs)
-        dens, self.high, self.slow_mode = _reduced_denominators(
-            self.segs, self.nk, self.n_high, self.bound, slow=1.0 / max(n_uniform, 1))
+        dens = self.prepare()
         best, since = -math.inf, 0
         for n in range(1, self.bound + 1):
-            if getattr(self, "honest", False) and n > 1:
-                score = max((c.criterion - per_pole * c.n for c in self.estimates()),
-                            default=-math.inf)
+            if (self.honest or self.patience) and n > 1:
+                pool = self.estimates() if self.honest else self.cands
+                score = max((c.criterion - per_pole * c.n for c in pool), default=-math.inf)
                 since = 0 if score > best else since + 1
                 best = max(best, score)
                 if since >= _PATIENCE:
@@ -545,13 +590,23 @@ class _Search:
             self.starts[n] = labelled
             starts = [p for _, p in labelled]
             tau0 = self.best_poles[n - 1][1] if n - 1 in self.best_poles else self.taus[0]
-            scored: list[tuple[float, NDArray, float]] = []
+            ms = self.zeros_for(n)
+            # (cost, poles, delay, scores of every m or None when still to be scored)
+            scored: list[tuple[float, NDArray, float, dict[int, Any] | None]] = []
             for p in starts:
                 pc = self.clip_poles(p, n)
-                if pc is not None:
-                    c = self.cost(pc, tau0)
-                    if math.isfinite(c):
-                        scored.append((c, pc, tau0))
+                if pc is None:
+                    continue
+                if self.cost_from_score:
+                    # the training RSS of the full numerator is the search's cost: one
+                    # simulation scores the start and ranks it
+                    sc = self.scorer.score(np.real(np.poly(pc)), tau0,
+                                           sorted(set(ms) | {n - 1}))
+                    c, scores = sc[n - 1][2], {m: sc[m] for m in ms}
+                else:
+                    c, scores = self.cost(pc, tau0), None
+                if math.isfinite(c):
+                    scored.append((c, pc, tau0, scores))
             if not scored:
                 continue
             i = int(np.argmin([x[0] for x in scored]))
@@ -559,20 +614,31 @@ class _Search:
                 if tau != tau0:
                     c = self.cost(scored[i][1], tau)
                     if c < scored[i][0]:
-                        scored[i] = (c, scored[i][1], tau)
-            _, pc, tau = scored[i]
+                        scored[i] = (c, scored[i][1], tau, None)
+            _, pc, tau, _ = scored[i]
             self.best_poles[n] = (pc, tau)
-            for _, pc, tau in scored:  # every start is a candidate, scored for every m
-                for m, (crit, fit, rss) in self.scorer.score(np.real(np.poly(pc)), tau,
-                                                             self.zeros_for(n)).items():
+            for _, pc, tau, scores in scored:  # every start is a candidate, scored for every m
+                if scores is None:
+                    scores = self.scorer.score(np.real(np.poly(pc)), tau, ms)
+                for m, (crit, fit, rss) in scores.items():
                     self.cands.append(_Candidate(n, m, pc, tau, crit, fit, rss))
 
-    def varpro(self, init: NDArray, max_iter: int = 5) -> NDArray | None:
+    def prepare(self) -> dict[int, NDArray]:
+        """The reduced high-order ARX denominators (once); sets ``high`` and ``slow_mode``."""
+        if self._reduced is None:
+            n_uniform = sum(u.size for u, _ in self.segs)
+            self._reduced, self.high, self.slow_mode = _reduced_denominators(
+                self.segs, self.nk, self.n_high, self.bound, slow=1.0 / max(n_uniform, 1))
+        return self._reduced
+
+    def varpro(self, init: NDArray, max_iter: int = _VARPRO_ITER) -> NDArray | None:
         """VARPRO poles, from ``init``, for the impulse response of the high-order ARX model.
 
-        ``max_iter`` iterations of :func:`kautztwin.optimize_poles` (a start
-        needs few) on ``_VARPRO_SAMPLES`` samples spanning about five time
-        constants of the slowest pole of ``init``.
+        :func:`kautztwin.optimize_poles` with its ``max_iter`` (a budget of
+        ``max_iter * (parameters + 1)`` residual evaluations besides the
+        Jacobians: with 1, a few iterations, which is all a start needs) on
+        ``_VARPRO_SAMPLES`` samples spanning about five time constants of the
+        slowest pole of ``init``.
         """
         from ...approx import optimize_poles
 
@@ -632,7 +698,8 @@ class _Search:
             try:
                 _, den, tau, sol = refine_order(self.tf, recs or self.fit_recs, c.n, c.m,
                                                 starts=starts, max_iter=max_iter,
-                                                min_rate=self.scorer.slowest)
+                                                min_rate=self.scorer.slowest,
+                                                stop_unresolved=recs is None and max_iter is None)
             except (np.linalg.LinAlgError, ValueError) as exc:
                 if isinstance(exc, KautzTwinError):
                     raise
@@ -640,7 +707,13 @@ class _Search:
         ms = [c.m] if (recs is not None or max_iter is None) else self.zeros_for(c.n)
         poles = np.roots(den).astype(complex)
         out = None
-        for m, (crit, fit, rss) in self.scorer.score(den, tau, ms).items():
+        if not self.honest and self.scorer.unresolved(den):
+            # a mode slower than the records: the criterion rejects it for every m, whatever
+            # the simulation (its training fit only matters to the internal split's estimates)
+            scores = {m: (-math.inf, math.nan, math.inf) for m in ms}
+        else:
+            scores = self.scorer.score(den, tau, ms)
+        for m, (crit, fit, rss) in scores.items():
             r = _Candidate(c.n, m, poles, tau, crit, fit, rss, refined=(
                 max_iter is None and m == c.m), den=den, sol=sol, caught=list(caught))
             if m == c.m:
@@ -715,42 +788,63 @@ class _Search:
                 per_n[c.n] = c
         return per_n
 
-    def run(self, per_pole: float, *, polish: bool = True) -> _Candidate:
+    def run(self, per_pole: float, *, polish: bool = True, reach: float | None = None
+            ) -> _Candidate:
         """Screen every order; refine briefly about the pick until it settles; then fully.
+
+        With ``reach`` (a challenger family, :func:`search_structure`) the
+        screening stops after ``_PATIENCE`` orders without a better pick, and
+        a screened pick whose criterion is below ``reach - _NEAR`` is returned
+        as it is (``self.unrefined``): it is not refined.
 
         The best screened structure of the pick's order and of its two neighbouring
         orders (and of the lowest order screened within ``_NEAR`` points of the
         best) gets ``_QUICK_ITER`` iterations of output-error refinement, warm
-        started from the lower orders; this repeats while the pick's order
-        changes (at most ``_ROUNDS`` times).  The pick is then refined to
-        convergence (``polish``; the inner split refits the pick on the whole
-        records instead); if a screened or briefly refined model still scores
-        best it is returned as it is.
+        started from the lower orders, in increasing order; an order the pick
+        has moved away from in the meantime (no longer the pick or next to it)
+        is skipped.  This repeats while the pick's order changes (at most
+        ``_ROUNDS`` times).  The pick is then refined to convergence
+        (``polish``; the inner split refits the pick on the whole records
+        instead); if a screened or briefly refined model still scores best it
+        is returned as it is.  The refinement to convergence stops at its
+        first iterate with a mode slower than the records
+        (:func:`~.refine.refine_order`'s ``stop_unresolved``): the criterion
+        rejects such a model, and such a refinement was not seen to come back
+        (brief refinements do come back from there, and are not stopped).
         """
+        self.patience = self.patience or reach is not None
         self.screen(per_pole)
         if not self.cands:
             raise DataError("the structure search found no usable model for these records")
+        if reach is not None and self.pick(per_pole).criterion < reach - _NEAR:
+            self.unrefined = True
+            return self.pick(per_pole)
         per_n = self.per_order()
         ranked = sorted(per_n.values(), key=lambda c: -c.criterion)
         low = min((c for c in ranked if c.criterion >= ranked[0].criterion - _NEAR),
                   key=lambda c: c.n)
         done: set[int] = set()
         todo = {low.n}
-        for _ in range(_ROUNDS):
+
+        def near() -> set[int]:
             p = self.pick(per_pole).n
             # honest: the pick and the order below (a higher order is not explored further:
             # its held-out score is already discounted by the screening's order of estimates)
-            near = (p - 1, p) if self.honest else (p - 1, p, p + 1)
-            todo |= {k for k in near if k in per_n}
-            todo -= done
+            return {k for k in ((p - 1, p) if self.honest else (p - 1, p, p + 1))
+                    if k in per_n}
+
+        for _ in range(_ROUNDS):
+            todo = (todo | near()) - done
             if not todo:
                 break
             for n in sorted(todo):
+                if n != low.n and n not in near():
+                    continue  # the pick has moved away from this order
                 self.refine(per_n[n], max_iter=_QUICK_ITER)
-            done |= todo
+                done.add(n)
+                if self.honest:  # a refined estimate may now represent its order
+                    per_n = self.per_order()
             todo = set()
-            if self.honest:  # a refined estimate may now represent its order
-                per_n = self.per_order()
         chosen = self.pick(per_pole)
         if polish and not chosen.refined:
             self.refine(chosen)
@@ -780,34 +874,39 @@ def search_structure(tf: TransferFunctionEstimator, recs: list[Record], est: lis
                      ) -> tuple[TransferFunctionModel, list[Any]]:
     """Choose and fit the structure; return the model and the chosen one's warnings.
 
-    The stable search (:func:`_search`, see the module docstring); then, with
-    ``integrator=None``, when its high-order ARX model shows a mode the
-    stable search cannot resolve (a positive real pole at or beyond
-    ``exp(-1 / n_samples)``: an integrator or a mode slower than the records)
-    and the records are held input/output records, the same search for
-    ``G(s)/s`` (:mod:`.integrator`); the integrating model is returned only
-    if its criterion beats the stable one's by the per-pole margin.  With
-    ``integrator=True`` only the integrating search runs, with ``False`` only
-    the stable one.  Sets ``tf.search_`` (bound, criterion, candidates,
-    timings, the integrator's trial) on the estimator.
+    The stable search (:func:`_search`, see the module docstring); with
+    ``integrator=None``, when the stable search's high-order ARX model shows a
+    mode the stable structures cannot resolve (a positive real pole at or
+    beyond ``exp(-1 / n_samples)``: an integrator or a mode slower than the
+    records) and the records are held input/output records, the search for
+    ``G(s)/s`` (:mod:`.integrator`) runs first, and the stable structures
+    challenge its pick: they are screened (until ``_PATIENCE`` orders in a row
+    do not improve their pick) and refined only if their screened pick comes
+    within ``_NEAR`` points of the criterion they must reach.  The integrating
+    model is returned if its criterion beats the stable one's by the per-pole
+    margin.  With ``integrator=True`` only the integrating search runs, with
+    ``False`` only the stable one.  Sets ``tf.search_`` (bound, criterion,
+    candidates, timings, the integrator's trial) on the estimator.
     """
     t_start = time.perf_counter()
     mode = getattr(tf, "integrator", None)
     info: dict[str, Any] = {"tried": False, "chosen": False}
     model = caught = at_bound = None
     crit = -math.inf
+    stable = None
     if mode is not True:
-        model, caught, crit, search, at_bound = _search(tf, recs, est)
+        stable = _prepare(tf, recs, est)
         if mode is False or _trend(tf):
             info["reason"] = "integrator=False"
-        elif not search.slow_mode:
+        elif not stable.search.slow_mode:
             info["reason"] = "no mode slower than the records in the high-order ARX model"
         elif check_integrable(tf, recs) is not None:
             info["reason"] = check_integrable(tf, recs)
+        if "reason" in info:
+            model, caught, crit, _, at_bound = _search(tf, recs, est, stable)
     elif check_integrable(tf, recs) is not None:
         raise DataError(str(check_integrable(tf, recs)))
     if mode is True or (mode is None and "reason" not in info):
-        stable_search = getattr(tf, "search_", None)
         mean = mean_level(est)
         inner = inner_estimator(tf)
         est_v = [integrated(r, mean) for r in est]
@@ -815,17 +914,25 @@ def search_structure(tf: TransferFunctionEstimator, recs: list[Record], est: lis
             m_v, caught_v, crit_v, _, at_bound_v = _search(
                 inner, [integrated(r, mean) for r in recs], est_v)
         except (KautzTwinError, np.linalg.LinAlgError, ValueError) as exc:
-            if model is None:
+            if stable is None:
                 raise
             info.update(tried=True, reason=f"the integrating search failed: {exc}")
+            model, caught, crit, _, at_bound = _search(tf, recs, est, stable)
         else:
+            assert m_v is not None
             tf.n_evaluations_ += inner.n_evaluations_
             margin = float(inner.search_["points_per_pole"])
+            if stable is not None:  # the stable structures challenge the integrating pick
+                model, caught, crit, _, at_bound = _search(tf, recs, est, stable,
+                                                           reach=crit_v - margin)
             info.update(tried=True, criterion=crit_v, stable_criterion=crit)
+            if stable is not None:
+                info["stable_refined"] = not stable.search.unrefined
             if mode is True or crit_v > crit + margin:
                 level = input_level(inner, m_v, est_v, mean)
                 rows = tuple({**r, "n_poles": r["n_poles"] + 1, "integrator": True}
                              for r in m_v.order_selection)
+                stable_search = getattr(tf, "search_", None) if stable is not None else None
                 model = integrating_model(tf, recs, est, m_v, level, rows)
                 caught, at_bound = caught_v, at_bound_v
                 info.update(chosen=True, input_level=level)
@@ -843,10 +950,19 @@ def search_structure(tf: TransferFunctionEstimator, recs: list[Record], est: lis
     return model, caught
 
 
-def _search(tf: TransferFunctionEstimator, recs: list[Record], est: list[Record]
-            ) -> tuple[TransferFunctionModel, list[Any], float, _Search, str | None]:
-    """The stable search: model, warnings, criterion of the pick, the search, bound warning."""
-    t_start = time.perf_counter()
+@dataclass
+class _Prepared:
+    """A search set up on its records: the search, its criterion's name, the bound's rule."""
+
+    search: _Search
+    criterion: str
+    validation: bool
+    why: str
+
+
+def _prepare(tf: TransferFunctionEstimator, recs: list[Record], est: list[Record]
+             ) -> _Prepared:
+    """The search of ``tf`` on the records: its criterion, scorer and high-order ARX model."""
     bound, why = search_bound(tf, est)
     check_samples(tf, est, 1, 0)
     validation = tf.validate_from is not None and any(
@@ -860,6 +976,10 @@ def _search(tf: TransferFunctionEstimator, recs: list[Record], est: list[Record]
             test.append(v if v.sum() >= 2 else np.zeros(r.n_samples, dtype=bool))
         scorer = _Scorer(tf, recs, [(train, test)])
         search = _Search(tf, est, scorer, bound)
+        # every record trains on exactly its estimation part: the estimation records
+        search.cost_from_score = len(est) == len(recs) and all(
+            np.array_equal(tr, r.t < T) and e.n_samples == int(tr.sum())
+            for tr, r, e in zip(train, recs, est, strict=True))
         criterion = "validation fit"
     elif len(est) > 1 and not any(_free(tf, r) for r in est):
         # records that start at rest (step, impulse, zero initial state): each record is
@@ -878,13 +998,35 @@ def _search(tf: TransferFunctionEstimator, recs: list[Record], est: list[Record]
         scorer = _Scorer(tf, est, [(train, test)])
         scorer.per_sample_spread()
         search = _Search(tf, fit_recs, scorer, bound, honest=True)
+        search.cost_from_score = True  # fit_recs are the training rows of the one fold
         criterion = (f"fit on the last {1 - _INNER:.0%} of each estimation record, the model "
                      f"estimated on the first {_INNER:.0%}")
     scorer.slowest = 1.0 / float(max(r.duration for r in est))
+    search.prepare()
+    return _Prepared(search, criterion, validation, why)
+
+
+def _search(tf: TransferFunctionEstimator, recs: list[Record], est: list[Record],
+            prepared: _Prepared | None = None, *, reach: float | None = None
+            ) -> tuple[TransferFunctionModel | None, list[Any], float, _Search, str | None]:
+    """One search: model, warnings, criterion of the pick, the search, bound warning.
+
+    With ``reach`` (a challenger, see :meth:`_Search.run`) a pick that is not
+    refined has no model (``None``): it cannot be chosen.
+    """
+    t_start = time.perf_counter()
+    prep = prepared if prepared is not None else _prepare(tf, recs, est)
+    search, criterion, validation, why = prep.search, prep.criterion, prep.validation, prep.why
+    scorer = search.scorer
     split = search.fit_recs is not est
     tol = _PARSIMONY if split else _NOISE
-    chosen = search.run(tol, polish=not split)
+    chosen = search.run(tol, polish=not split, reach=reach)
     crit = chosen.criterion
+    if search.unrefined:
+        tf.n_evaluations_ += scorer.n_eval + sum(p.n_eval for p in search._probs.values())
+        tf.search_ = _summary(search, why, criterion, tol, chosen,
+                              time.perf_counter() - t_start)
+        return None, [], crit, search, None
     if split:
         # the structure is chosen; its final estimate uses the whole estimation records
         chosen = search.refine(chosen, recs=est, warm=False)
@@ -913,17 +1055,28 @@ def _search(tf: TransferFunctionEstimator, recs: list[Record], est: list[Record]
             "criterion": best_n.criterion, "refined": best_n.refined, "delay": best_n.tau,
         })
     model = dataclasses.replace(model, order_selection=tuple(rows))
-    tf.search_ = {
+    tf.search_ = _summary(search, why, criterion, tol, chosen, t_search)
+    at_bound = None
+    if chosen.n >= search.bound:
+        extra = 1 if _trend(tf) else 0  # G of G(s)/s: the model has the integrator too
+        at_bound = (
+            f"the chosen order {chosen.n + extra} is the search bound ({why}; the data support "
+            f"{search.bound + extra}): a higher order may fit better; raise max_order if the "
+            "records can support it")
+    return model, chosen.caught, crit, search, at_bound
+
+
+def _summary(search: _Search, why: str, criterion: str, tol: float, chosen: _Candidate,
+             t_search: float) -> dict[str, Any]:
+    """``tf.search_`` of one search: bound, criterion, candidates, refinements, time, pick."""
+    out = {
         "bound": search.bound, "bound_rule": why, "criterion": criterion,
         "screened_to": search.screened_to,
         "points_per_pole": tol, "n_candidates": len(search.cands),
         "refined": [list(k) for k in sorted(search.refined)], "search_s": t_search,
         "chosen": {"n_poles": chosen.n, "n_zeros": chosen.m, "refined": chosen.refined},
     }
-    at_bound = None
-    if chosen.n >= search.bound:
-        at_bound = (
-            f"the chosen order {chosen.n} is the search bound ({why}; the data support "
-            f"{search.bound}): a higher order may fit better; raise max_order if the records "
-            "can support it")
-    return model, chosen.caught, crit, search, at_bound
+    if search.unrefined:
+        out["unrefined"] = ("a challenger whose screened pick is more than "
+                            f"{_NEAR:g} points below the criterion it must reach")
+    return out
