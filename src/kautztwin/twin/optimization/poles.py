@@ -28,11 +28,16 @@ k`` it is the synchronous re-optimisation bit for bit.  A resumed run replays
 it so (the judging sample is read back from the stored event's ``k`` and
 ``k_submitted``).  The offline path keeps the synchronous call.
 
-The judgement reads four private members of the
-:class:`~kautztwin.twin.Updater` (``_core_n``, ``_counts``, ``_buffer``,
-``_judge``): the update module has no public "validate this candidate" entry
-yet; ``tests/test_twin_pole_worker.py`` checks that the split path gives the
-synchronous path's result bit for bit.
+The job and its judgement use the :class:`~kautztwin.twin.Updater`'s public
+entries for a candidate built outside it: :attr:`~kautztwin.twin.Updater.core_poles`
+(the starting poles), :meth:`~kautztwin.twin.Updater.validation_window` (the
+step test's validation window, frozen into the job),
+:meth:`~kautztwin.twin.Updater.count_attempt` and
+:meth:`~kautztwin.twin.Updater.judge_candidate` (the updater's rules; an
+accepted candidate starts from its filter state now), and
+:func:`~kautztwin.twin.update.steptest.step_test_record` (the step test as a
+window when the buffer holds too little).  ``tests/test_twin_pole_worker.py``
+checks that the split path gives the synchronous path's result bit for bit.
 """
 
 from __future__ import annotations
@@ -49,9 +54,9 @@ from ...approx.model import KautzModel
 from ...approx.poles import optimize_poles
 from ...basis import KautzBasis
 from ...exceptions import DataError
-from ...ident.kautz_oe import continuous_poles
 from ..digital import discretize_model
 from ..update import ModelUpdate, Updater
+from ..update.steptest import step_test_record
 from ..update.worker import WORKER_KINDS, _process_context, _process_init, _ready
 
 __all__ = ["PoleJob", "PoleWorker", "judge_pole_candidate", "pole_candidate", "pole_job"]
@@ -124,17 +129,11 @@ def pole_job(optimizer: Any, updater: Updater, k: int) -> PoleJob | None:
     u0 = updater.input_offset
     y = np.array(est.simulate(np.full(n, u0 + 1.0)), dtype=float)
     y.setflags(write=False)
-    poles = np.array(continuous_poles(basis)[: updater._core_n])
+    poles = np.array(updater.core_poles)
     poles.setflags(write=False)
     # the validation window of update_from_step_test, frozen now
-    u_all, y_all = updater._buffer()
-    n_w = min(updater.reid_samples, u_all.size)
-    n_val = int(updater.validation_fraction * n_w)
-    if n_val >= 10 and np.isfinite(y_all[-n_val:]).sum() >= 10:
-        h0 = max(0, u_all.size - n_w - updater.burn_in)
-        u_val, y_val = u_all[h0:], y_all[h0:]
-    else:
-        u_val, y_val, n_val = np.zeros(0), np.zeros(0), 0
+    window = updater.validation_window()
+    u_val, y_val, n_val = (np.zeros(0), np.zeros(0), 0) if window is None else window
     u_val.setflags(write=False)
     y_val.setflags(write=False)
     return PoleJob(y, float(u0), float(est.offset_), poles, float(updater.dt), int(k),
@@ -236,7 +235,7 @@ def judge_pole_candidate(
         the fit failed (the synchronous path's ``None``).
     """
     start = time.perf_counter()
-    updater._counts["attempts"] += 1
+    updater.count_attempt()
     if outcome.model is None:
         return None
     try:
@@ -252,19 +251,14 @@ def _judge(updater: Updater, job: PoleJob, model: KautzModel, start: float) -> M
         # on the window frozen at the resync (the candidate has seen it, as the live model
         # has), as a background re-identification is judged; an accepted candidate starts
         # from its filter state now
-        u_now = None
-        if updater.k > job.k_updater:  # the input from the window's first sample up to now
-            u_buf, _ = updater._buffer()
-            n_now = min(job.u_val.size + (updater.k - job.k_updater), u_buf.size)
-            u_now = u_buf[u_buf.size - n_now:]
-        return updater._judge("step-test", start, md, offset, job.u_val, job.y_val, job.n_val,
-                              u_now=u_now, k_submitted=job.k)
+        return updater.judge_candidate(md, offset, job.u_val, job.y_val, job.n_val,
+                                       kind="step-test", k_window=job.k_updater,
+                                       k_submitted=job.k, start=start)
     # too little buffered data: validate on the step test itself (the synchronous rule)
-    n_pre = max(updater.burn_in, 1)
-    u_rec = np.concatenate([np.full(n_pre, job.u0), np.full(job.y.size, job.u0 + 1.0)])
-    y_rec = np.concatenate([np.full(n_pre, job.y0), job.y])  # the step test as frozen
-    return updater._judge("step-test", start, md, offset, u_rec, y_rec, job.y.size,
-                          k_submitted=job.k)
+    u_rec, y_rec = step_test_record(job.y, u0=job.u0, y0=job.y0, amplitude=1.0,
+                                    burn_in=updater.burn_in)  # the step test as frozen
+    return updater.judge_candidate(md, offset, u_rec, y_rec, job.y.size, kind="step-test",
+                                   k_submitted=job.k, start=start)
 
 
 @dataclass

@@ -11,8 +11,13 @@ Three rooms:
 * :mod:`.reidentify`: :class:`Updater`, which runs the two each sample and the
   **accurate path** when the monitor triggers: output-error re-identification
   (:func:`kautztwin.ident.identify_output_error`) validated on held-out recent
-  data (:class:`ModelUpdate`, :class:`UpdateResult`); its background worker
-  thread is in :mod:`.worker`.
+  data (:class:`ModelUpdate`, :class:`UpdateResult`).  Its jobs beside the
+  sample loop and the recovery policy are base classes in their own modules:
+  :mod:`.accurate` (the accurate path: when an attempt is due, its window,
+  fitted now or in the background worker of :mod:`.worker`),
+  :mod:`.steptest` (the step-test / DNN path),
+  :mod:`.judging` (the validation and acceptance of every candidate);
+  :mod:`.records` holds the two records.
 
 :func:`discretize_model` (:mod:`kautztwin.twin.digital`) and the output-error
 identification (:mod:`kautztwin.ident.kautz_oe`) are re-exported here.
@@ -22,8 +27,9 @@ from __future__ import annotations
 
 from ...ident.kautz_oe import OutputErrorFit, identify_output_error
 from ..digital import discretize_model
+from .records import ModelUpdate, UpdateResult
 from .recursive import RecursiveKautzEstimator
-from .reidentify import ModelUpdate, Updater, UpdateResult
+from .reidentify import Updater
 from .sync import FitHistory, SyncEvent, SyncMonitor
 
 __all__ = [

@@ -1,4 +1,4 @@
-r"""Re-identification policy of the twin's update module: the :class:`Updater`.
+r"""The twin's update module as one object, the :class:`Updater`: sample loop and versions.
 
 The :class:`Updater` runs the fast path (:class:`RecursiveKautzEstimator`)
 and the :class:`SyncMonitor` on every sample and, when the monitor reports a
@@ -8,14 +8,23 @@ poles and coefficients on the recent window
 predicts held-out recent data better than the current model.  A trained DNN
 estimator (any object with ``predict_models``) or
 :func:`kautztwin.optimize_poles` turns a step test into a model
-(:meth:`Updater.update_from_step_test`).  The background worker (thread or process) of the
-accurate path lives in :mod:`.worker`.
+(:meth:`Updater.update_from_step_test`).
 
 Every accepted model is a new :class:`~kautztwin.twin.DigitalModel` version.
 The model of the twin is ``y(k) = c^T x_f(k) + offset``: the
 :class:`~kautztwin.KautzModel` (a discrete, delayed basis on the sampling
 period) carries ``c``; the operating-point ``offset`` is kept by the updater
 (:attr:`Updater.offset`) and logged with every version.
+
+This module holds the updater's settings and state, the sample loop
+(:meth:`Updater.step`: fast path, monitor) and its model versions (a winner
+adopted, :meth:`Updater.snapshot`).  The other jobs are base classes of
+:class:`Updater` in modules beside it: :mod:`.accurate` (the accurate path:
+when an attempt is due, its window, fitted now or in the worker of
+:mod:`.worker`), :mod:`.steptest` (the step-test / DNN path) and
+:mod:`.judging` (the validation and acceptance of every candidate);
+:mod:`.records` holds :class:`ModelUpdate` and :class:`UpdateResult`
+(re-exported here).
 
 Size: the module is over 600 lines because :class:`Updater` is (see its docstring).
 """
@@ -25,7 +34,6 @@ from __future__ import annotations
 import math
 import time
 from collections import deque
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -33,152 +41,23 @@ from numpy.typing import ArrayLike, NDArray
 
 from ..._validation import check_int, check_number, check_positive
 from ...approx.model import KautzModel
-from ...approx.poles import optimize_poles
 from ...basis import KautzBasis
 from ...basis._blocks import parse_poles
-from ...exceptions import DataError, KautzTwinError
+from ...exceptions import DataError
 from ...ident.kautz_oe import OutputErrorFit, continuous_poles, filter_states
-from ...metrics import fit_percent_or_nan
 from ..digital import DigitalModel, discretize_model
 from ..physical.sanitize import SampleFlag, SampleSanitizer
+from .accurate import AccuratePath
+from .records import ModelUpdate, UpdateResult
 from .recursive import RecursiveKautzEstimator
+from .steptest import StepTestPath
 from .sync import SyncEvent, SyncMonitor, _finite_or_nan
-from .worker import WORKER_KINDS, _ReidJob, _ReidWorker
+from .worker import WORKER_KINDS, _ReidWorker
 
 __all__ = ["ModelUpdate", "UpdateResult", "Updater"]
 
 
-@dataclass(frozen=True, eq=False)
-class ModelUpdate:
-    """Outcome of one accurate-path or step-test update attempt of :class:`Updater`.
-
-    Parameters
-    ----------
-    kind : {'reidentification', 'dnn-update', 'step-test'}
-        What produced the candidate.
-    k : int
-        Sample index (the updater's next sample) at which it was decided.
-    accepted : bool
-        Whether the candidate replaced the current model.
-    reason : str
-        Why it was accepted or rejected.
-    candidate : KautzModel or None
-        The candidate model (delayed discrete basis), ``None`` if none was built.
-    offset : float
-        The candidate's output offset.
-    fit_candidate : float
-        Fit percent of the candidate on the held-out validation samples.
-    fit_current : float
-        Fit percent of the current model on the same samples.
-    digital_model : DigitalModel or None
-        The new version when accepted.
-    elapsed : float
-        Seconds of computation the attempt took (in a background attempt:
-        the worker's fit plus the validation in :meth:`Updater.step`).
-    k_submitted : int or None, default=None
-        Sample index at which the attempt's data window ended; ``k`` for a
-        synchronous attempt, earlier for a background one (which is judged
-        at ``k``, when its result was ready).  ``None`` means ``k``.
-    relative_width : float, default=nan
-        Uncertainty of a DNN candidate: the RMS half-width of its confidence
-        band over the RMS of its response
-        (:attr:`~kautztwin.nn.ResponseEstimate.relative_width`, the level in
-        ``confidence``); NaN when the candidate came without one (an
-        estimator without ``estimate``, pole optimisation, re-identification).
-    confidence : float, default=nan
-        Level of the band of ``relative_width`` (0.9 for the estimators' default).
-    """
-
-    kind: str
-    k: int
-    accepted: bool
-    reason: str
-    candidate: KautzModel | None
-    offset: float
-    fit_candidate: float
-    fit_current: float
-    digital_model: DigitalModel | None
-    elapsed: float
-    k_submitted: int | None = None
-    relative_width: float = math.nan
-    confidence: float = math.nan
-
-    def __post_init__(self) -> None:
-        if self.k_submitted is None:
-            object.__setattr__(self, "k_submitted", self.k)
-
-    def payload(self) -> dict[str, Any]:
-        """JSON-ready summary (for the history store).
-
-        Returns
-        -------
-        dict
-        """
-        return {
-            "kind": self.kind, "k": self.k, "k_submitted": self.k_submitted,
-            "accepted": self.accepted, "reason": self.reason,
-            "offset": self.offset, "fit_candidate": _json_float(self.fit_candidate),
-            "fit_current": _json_float(self.fit_current), "elapsed": self.elapsed,
-            "version": None if self.digital_model is None else self.digital_model.version,
-            "model": None if self.candidate is None else self.candidate.to_dict(),
-            "relative_width": _json_float(self.relative_width),
-            "confidence": _json_float(self.confidence),
-        }
-
-
-def _json_float(x: float) -> float | None:
-    return None if not math.isfinite(x) else float(x)
-
-
-@dataclass(frozen=True, eq=False)
-class UpdateResult:
-    """What :meth:`Updater.step` did with one sample.
-
-    Parameters
-    ----------
-    k : int
-        Sample index.
-    t : float or None
-        Sample time, if given.
-    y_pred : float
-        A-priori prediction of this sample with the current parameters.
-    y_pred_frozen : float
-        Prediction with the parameters frozen at the start of the current
-        prediction horizon (what the monitor judges).
-    y : float
-        The measured value used, NaN when the sample was skipped.
-    flags : int
-        :class:`~kautztwin.twin.SampleFlag` bits of the output sample.
-    input_held : bool
-        Whether the input was missing and the last one was held.
-    fit : float
-        Latest rolling fit of the monitor, percent (NaN before the first window).
-    events : tuple of SyncEvent
-        Monitor events raised by this sample.
-    model_update : ModelUpdate or None
-        An accurate-path attempt decided at this sample (in background mode:
-        one submitted earlier whose result was judged now).
-    version : int
-        Version of the digital model after this sample.
-    elapsed : float
-        Wall-clock seconds spent in :meth:`Updater.step`.
-    """
-
-    k: int
-    t: float | None
-    y_pred: float
-    y_pred_frozen: float
-    y: float
-    flags: int
-    input_held: bool
-    fit: float
-    events: tuple[SyncEvent, ...]
-    model_update: ModelUpdate | None
-    version: int
-    elapsed: float
-
-
-class Updater:
+class Updater(StepTestPath, AccuratePath):
     r"""Keeps the twin's model synchronised with the plant: fast path, monitor, accurate path.
 
     Each :meth:`step` takes one sample ``(u(k), y(k))`` and
@@ -222,9 +101,18 @@ class Updater:
     uncertainty; with ``max_relative_width`` set, a candidate whose band is
     wider than that is deferred (rejected without validation, the model kept).
 
-    The class is over 400 lines because it documents the recovery policy and
-    every parameter (about 400 of its lines are docstrings); the background
-    worker thread lives in :mod:`kautztwin.twin.update.worker`.
+    :meth:`judge_candidate` judges a candidate built elsewhere (the runtime's
+    pole re-optimisation) with the same rules, on a window of
+    :meth:`recent_samples` such as :meth:`validation_window`.
+
+    Size: the class is over 400 lines because it documents the recovery policy
+    and every parameter (about 280 of its lines are docstrings) and checks
+    every parameter in one place.  Its other jobs are its base classes, one
+    module each: the accurate path
+    (:class:`~kautztwin.twin.update.accurate.AccuratePath`: recovery, attempts,
+    the worker of :mod:`kautztwin.twin.update.worker`), the step-test path
+    (:class:`~kautztwin.twin.update.steptest.StepTestPath`) and the judging of
+    candidates (:class:`~kautztwin.twin.update.judging.CandidateJudging`).
 
     Parameters
     ----------
@@ -639,19 +527,36 @@ class Updater:
         return self.estimator_.model_
 
     @property
-    def recovering(self) -> bool:
-        """Whether a recovery (re-identification attempts) is under way."""
-        return self._recovery is not None
-
-    @property
-    def pending(self) -> bool:
-        """Whether a background attempt is in flight (submitted, not judged yet)."""
-        return self._worker.pending is not None
-
-    @property
     def counts(self) -> dict[str, int]:
         """Counters: samples, used, skipped, late, gap, input_held, attempts, accepted (a copy)."""
         return dict(self._counts)
+
+    @property
+    def n_core_functions(self) -> int:
+        """Basis functions of the model proper: the fast path's first ones (no ``extra_poles``)."""
+        return self._core_n
+
+    @property
+    def core_poles(self) -> NDArray[np.complex128]:
+        """Continuous-time poles of the model proper (the fast path's, without ``extra_poles``).
+
+        A new array each time; the starting poles of a re-identification or a
+        step-test pole optimisation.
+        """
+        return continuous_poles(self.estimator_.basis_)[: self._core_n]
+
+    def recent_samples(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """The buffered recent samples, oldest first: what re-identification and validation use.
+
+        Returns
+        -------
+        u, y : ndarray of shape (n_buffered,)
+            Inputs and outputs (new arrays; at most ``buffer_size`` samples).
+            ``y`` is NaN where a sample was not used (a dropout, an outlier, a
+            gap); ``u`` holds the input the filters were driven with (a held
+            input where one was missing).
+        """
+        return (np.asarray(self._u, dtype=float), np.asarray(self._y, dtype=float))
 
     def predict(self, u: ArrayLike) -> NDArray[np.float64]:
         """Predict the output for future inputs from the current state (parameters as of now).
@@ -745,19 +650,8 @@ class Updater:
         for ev in events:
             self._on_event(ev)
         update = self._poll() if self._worker.pending is not None else None
-        rec = self._recovery
-        if (
-            rec is not None and self._k >= rec["next"] and self._worker.pending is None
-            and update is None
-        ):
-            if self.background and not self._worker.closed:
-                update = self._submit()
-            else:
-                update = self.reidentify()
-            rec["attempts"] += 1
-            rec["next"] = self._k + self.reid_every
-            if rec["attempts"] >= self.max_attempts:
-                self._recovery = None
+        if update is None:
+            update = self._attempt_if_due()
         return UpdateResult(
             k, tf, y_pred, y_frozen, yf, int(flags), held, self.monitor.fit, events, update,
             self.digital_model.version, time.perf_counter() - start,
@@ -772,151 +666,7 @@ class Updater:
     def _on_event(self, ev: SyncEvent) -> None:
         self.events.append(ev)
         self._log(ev.kind, ev.message, ev.k, ev.t, ev.payload())
-        if ev.kind == "resync":
-            self._recovery = None
-            self._worker.make_stale("the twin resynchronised while it ran")
-        elif ev.kind == "desync" and self.reidentify_enabled and self._recovery is None:
-            mon = self.monitor
-            first_bad_end = self._k - (mon.n_consecutive - 1) * mon.stride
-            change = max(first_bad_end - mon.window // 2, self._model_k, 0)
-            self._recovery = {
-                "change": change, "next": change + self.min_reid_samples, "attempts": 0,
-            }
-
-    # ------------------------------------------------------------------ accurate path
-    def _buffer(self) -> tuple[NDArray, NDArray]:
-        return (np.asarray(self._u, dtype=float), np.asarray(self._y, dtype=float))
-
-    def _validate(
-        self, model: KautzModel, offset: float, u: NDArray, y: NDArray, n_val: int
-    ) -> tuple[float, float, NDArray]:
-        """Fits of a candidate and of the live model on the last ``n_val`` samples of ``u, y``."""
-        v = u - self.input_offset
-        Xc = filter_states(model.basis, v)
-        yc = Xc[:-1] @ model.coefficients + offset
-        est = self.estimator_
-        ym = filter_states(est.basis_, v)[:-1] @ est.coef_ + est.offset_
-        sl = slice(u.size - n_val, u.size)
-        return fit_percent_or_nan(y[sl], yc[sl]), fit_percent_or_nan(y[sl], ym[sl]), Xc[-1]
-
-    def _prepare(self, n_samples: int | None) -> _ReidJob | ModelUpdate:
-        """Freeze the window of an attempt (counted), or reject it for too few samples."""
-        start = time.perf_counter()
-        self._counts["attempts"] += 1
-        u_all, y_all = self._buffer()
-        if n_samples is None:
-            n_samples = self.reid_samples
-            if self._recovery is not None:
-                n_samples = min(n_samples, self._k - self._recovery["change"])
-        n_w = min(int(n_samples), u_all.size)
-        h0 = max(0, u_all.size - n_w - self.burn_in)
-        u, y = u_all[h0:], y_all[h0:]  # fresh arrays: the buffer is a deque
-        w0 = u.size - n_w  # first sample of the window inside (u, y)
-        n_val = int(self.validation_fraction * n_w)
-        n_est = u.size - n_val
-        n_par = self._core_n + 1
-        usable = int(np.isfinite(y[w0:n_est]).sum())
-        if n_val < 10 or usable < 4 * n_par or np.isfinite(y[n_est:]).sum() < 10:
-            return self._finish(
-                "reidentification", start, False,
-                f"too few samples: {usable} usable for estimation, {n_val} for validation",
-                None, math.nan, math.nan, math.nan, None,
-            )
-        u.setflags(write=False)
-        y.setflags(write=False)
-        poles = continuous_poles(self.estimator_.basis_)[: self._core_n]
-        return _ReidJob(
-            u=u, y=y, w0=w0, n_est=n_est, n_val=n_val, poles=poles, dt=self.dt,
-            input_offset=self.input_offset, min_rate=self.min_rate, max_iter=self.max_iter,
-            k=self._k,
-        )
-
-    def reidentify(self, n_samples: int | None = None) -> ModelUpdate:
-        """Accurate path now, synchronously: output-error re-identification on the recent window.
-
-        Always runs in the caller's thread, also in background mode; an
-        accepted candidate makes a background attempt in flight stale.
-
-        Parameters
-        ----------
-        n_samples : int, optional
-            Window length; since the dated change of the current recovery
-            (at most ``reid_samples``), or ``reid_samples`` outside a recovery.
-
-        Returns
-        -------
-        ModelUpdate
-            Accepted or not, with both validation fits.
-        """
-        job = self._prepare(n_samples)
-        if isinstance(job, ModelUpdate):
-            return job
-        out = self._worker.fit_now(job)
-        assert out.fit is not None  # only a cancelled fit has none
-        return self._judge(
-            "reidentification", time.perf_counter() - out.elapsed, out.fit.model, out.fit.offset,
-            job.u, job.y, job.n_val,
-        )
-
-    # ------------------------------------------------------------------ background
-    def _submit(self) -> ModelUpdate | None:
-        """Submit an attempt to the worker; ``None``, or the rejection when it cannot start."""
-        job = self._prepare(None)
-        if isinstance(job, ModelUpdate):
-            return job
-        self._worker.submit(job)
-        return None
-
-    def _poll(self) -> ModelUpdate | None:
-        """Judge the attempt in flight if its result is ready (the caller checked one exists)."""
-        p = self._worker.take_finished()
-        if p is None:
-            return None
-        job = p.job
-        if p.stale:
-            return self._finish(
-                "reidentification", time.perf_counter(), False,
-                f"discarded the attempt submitted at sample {job.k}: {p.stale}",
-                None, math.nan, math.nan, math.nan, None, k_submitted=job.k,
-            )
-        try:
-            out = self._worker.result(p)
-        except (KautzTwinError, ValueError, ArithmeticError) as exc:
-            return self._finish(
-                "reidentification", time.perf_counter(), False,
-                f"the fit submitted at sample {job.k} failed: {exc}",
-                None, math.nan, math.nan, math.nan, None, k_submitted=job.k,
-            )
-        assert out.fit is not None  # not cancelled: it would be stale
-        u_now = None
-        if self._k > job.k:  # the input from the window's first sample up to now
-            n_now = min(job.u.size + (self._k - job.k), len(self._u))
-            u_now = np.asarray(self._u, dtype=float)[len(self._u) - n_now:]
-        return self._judge(
-            "reidentification", time.perf_counter() - out.elapsed, out.fit.model, out.fit.offset,
-            job.u, job.y, job.n_val, u_now=u_now, k_submitted=job.k,
-        )
-
-    def request_reidentification(self) -> bool:
-        """Schedule one re-identification attempt on the recent window at the next sample.
-
-        The attempt takes the path of a drift-triggered one (background or
-        synchronous, judged on held-out data, a new model version when
-        accepted), so whoever drives the loop sees it in the next
-        :meth:`step`'s ``model_update``.
-
-        Returns
-        -------
-        bool
-            ``False`` (nothing scheduled) when re-identification is disabled or
-            an attempt is already scheduled or in flight.
-        """
-        if (not self.reidentify_enabled or self._recovery is not None
-                or self._worker.pending is not None):
-            return False
-        self._recovery = {"change": max(self._k - self.reid_samples, 0),
-                          "next": self._k, "attempts": self.max_attempts - 1}
-        return True
+        self._recovery_on_event(ev.kind)
 
     def revise_last_input(self, u: float) -> None:
         """The plant applied ``u`` over the last sample's period, not the input :meth:`step` got.
@@ -938,96 +688,24 @@ class Updater:
         self._u[-1] = uf
         self._u_last = uf
 
-    def cancel_pending(self, reason: str = "cancelled") -> bool:
-        """Make the background attempt in flight stale (after a reset of your own, say).
+    def _adopt(
+        self, kind: str, model: KautzModel, offset: float, fit: float, u: NDArray,
+        state: NDArray, u_now: NDArray | None,
+    ) -> DigitalModel:
+        """Make a winning candidate the new model version; the fast path continues from it.
 
-        Its result is discarded when the worker stops (reported by a later
-        :meth:`step` as a rejected :class:`ModelUpdate` with ``reason``).
-
-        Parameters
-        ----------
-        reason : str, default='cancelled'
-            Why, for the rejection's reason.
-
-        Returns
-        -------
-        bool
-            Whether an attempt was in flight.
+        ``state`` is the candidate's filter state at the end of ``u`` (its
+        validation window); with ``u_now`` (the input from the window's first
+        sample up to now, samples having arrived since) or ``extra_poles``,
+        the state of the fast path's basis is recomputed over that input.
         """
-        return self._worker.cancel(reason)
-
-    def wait(self, timeout: float | None = None) -> bool:
-        """Block until the background attempt in flight has finished computing.
-
-        The next :meth:`step` judges it; nothing is judged here.
-
-        Parameters
-        ----------
-        timeout : float, optional
-            Most seconds to wait (no limit when omitted).
-
-        Returns
-        -------
-        bool
-            Whether no computation is outstanding any more.
-        """
-        return self._worker.wait(timeout)
-
-    def close(self) -> None:
-        """Stop the background worker: cancel the attempt in flight and join the thread.
-
-        A running fit stops at its next start (one ``identify_output_error``
-        run at most).  Idempotent; afterwards attempts run synchronously.
-        """
-        self._worker.close()
-
-    def __enter__(self) -> Updater:
-        return self
-
-    def __exit__(self, *exc: Any) -> None:
-        self.close()
-
-    def _judge(
-        self, kind: str, start: float, model: KautzModel, offset: float, u: NDArray,
-        y: NDArray, n_val: int, *, u_now: NDArray | None = None, k_submitted: int | None = None,
-        band: tuple[float, float] = (math.nan, math.nan),
-    ) -> ModelUpdate:
-        """Validate a candidate on the last ``n_val`` samples of ``u, y`` and maybe adopt it.
-
-        ``u_now``: the input from the first sample of ``u`` (or a later one,
-        when the buffer no longer holds it) up to now, when samples arrived
-        after the window (a background attempt); an accepted candidate
-        starts from its filter state at the end of ``u_now``.
-        """
-        fit_c, fit_m, state = self._validate(model, offset, u, y, n_val)
-        better = math.isfinite(fit_c) and (
-            not math.isfinite(fit_m) or fit_c > fit_m + self.min_improvement
-        )
-        if not better:
-            return self._finish(
-                kind, start, False,
-                f"candidate fit {fit_c:.2f} % does not beat the current {fit_m:.2f} % "
-                f"on {n_val} held-out samples",
-                model, offset, fit_c, fit_m, None, k_submitted=k_submitted, band=band,
-            )
-        floor = self.min_candidate_fit
-        if floor is not None and not fit_c >= floor:
-            return self._finish(
-                kind, start, False,
-                f"candidate fit {fit_c:.2f} % on {n_val} held-out samples is below "
-                f"min_candidate_fit = {floor:g} % (the current model has {fit_m:.2f} %)",
-                model, offset, fit_c, fit_m, None, k_submitted=k_submitted, band=band,
-            )
-        dm = self.digital_model.with_update(model, kind, fit_c)
+        dm = self.digital_model.with_update(model, kind, fit)
         self.digital_model = dm
         self._core_n = model.n_functions
-        if u_now is None:
-            u_now = u
-        else:
-            state = filter_states(model.basis, u_now - self.input_offset)[-1]
         wide = self._widen(model)
-        if wide is not model:
-            state = filter_states(wide.basis, u_now - self.input_offset)[-1]
+        if wide is not model or u_now is not None:
+            v = (u if u_now is None else u_now) - self.input_offset
+            state = filter_states(wide.basis, v)[-1]
         self.estimator_.reseed(wide, offset=offset, state=state, delta=self.delta)
         self._theta_frozen = self.estimator_.parameters_
         self.monitor.clear_window()
@@ -1036,141 +714,7 @@ class Updater:
         self._worker.make_stale("another model was accepted while it ran")
         if self.history is not None:
             self.history.add_model_version(self.run_id, dm, k=self._k)
-        return self._finish(
-            kind, start, True,
-            f"candidate fit {fit_c:.2f} % beats the current {fit_m:.2f} % on {n_val} held-out "
-            "samples",
-            model, offset, fit_c, fit_m, dm, k_submitted=k_submitted, band=band,
-        )
-
-    def _finish(
-        self, kind: str, start: float, accepted: bool, reason: str, model: KautzModel | None,
-        offset: float, fit_c: float, fit_m: float, dm: DigitalModel | None,
-        *, k_submitted: int | None = None, band: tuple[float, float] = (math.nan, math.nan),
-    ) -> ModelUpdate:
-        mu = ModelUpdate(
-            kind, self._k, accepted, reason, model, offset, fit_c, fit_m, dm,
-            time.perf_counter() - start, k_submitted, *band,
-        )
-        self.model_updates.append(mu)
-        self._log(
-            "model-update" if accepted else "model-rejected", reason, self._k, None, mu.payload()
-        )
-        return mu
-
-    def _dnn_candidate(
-        self, record: NDArray, t: NDArray | None
-    ) -> tuple[KautzModel, tuple[float, float]]:
-        """The DNN's model of a step record and ``(relative_width, level)`` of its band.
-
-        The estimator's ``estimate`` when it has one (the same model as
-        ``predict_models``, with the uncertainty), else ``predict_models``
-        and no width (NaN).
-        """
-        estimate = getattr(self.dnn, "estimate", None)
-        if not callable(estimate):
-            return self.dnn.predict_models(record, t=t)[0], (math.nan, math.nan)
-        result = estimate(record, t=t)
-        return result.model(0), (float(result.relative_width[0]), float(result.level))
-
-    def update_from_step_test(
-        self,
-        y: ArrayLike,
-        *,
-        t: ArrayLike | None = None,
-        amplitude: float = 1.0,
-        u0: float | None = None,
-        y0: float | None = None,
-    ) -> ModelUpdate:
-        """Fast path from a step test: a DNN (or pole optimisation) estimate, validated.
-
-        Parameters
-        ----------
-        y : array-like of shape (n_samples,)
-            Measured output of a step test from an equilibrium, the step
-            applied at the first sample.
-        t : array-like of shape (n_samples,), optional
-            Its sample times from the step (``k * dt`` when omitted; a DNN may
-            need its own training grid).
-        amplitude : float, default=1.0
-            Step height of the input.
-        u0 : float, optional
-            Input before the step; the updater's ``input_offset`` when omitted.
-        y0 : float, optional
-            Output before the step; ``y[0]`` when omitted.
-
-        Returns
-        -------
-        ModelUpdate
-            ``kind='dnn-update'`` with an estimator, else ``'step-test'``;
-            a DNN candidate carries the ``relative_width`` of its band and
-            is deferred (rejected, reason ``'deferred: ...'``, fits NaN)
-            when that exceeds ``max_relative_width``.
-            The candidate is validated on the last ``reid_samples`` buffered
-            samples (their final ``validation_fraction``) when the buffer holds
-            enough, else on the step test itself (on the twin's grid only; an
-            accepted model then continues from the state at the end of the
-            step test).
-
-        Raises
-        ------
-        DataError
-            If the record is not finite or ``amplitude`` is zero.
-        """
-        start = time.perf_counter()
-        self._counts["attempts"] += 1
-        yy = np.asarray(y, dtype=float).reshape(-1)
-        if yy.size < 3 or not np.all(np.isfinite(yy)):
-            raise DataError("y must hold at least 3 finite samples of a step test")
-        amp = check_number(amplitude, "amplitude")
-        if amp == 0:
-            raise DataError(f"amplitude must be a nonzero number, got {amplitude!r}")
-        base_u = self.input_offset if u0 is None else check_number(u0, "u0")
-        base_y = float(yy[0]) if y0 is None else check_number(y0, "y0")
-        record = (yy - base_y) / amp
-        tt = None if t is None else np.asarray(t, dtype=float)
-        band = (math.nan, math.nan)
-        if self.dnn is not None:
-            kind = "dnn-update"
-            model, band = self._dnn_candidate(record, tt)
-        else:
-            kind = "step-test"
-            grid = np.arange(yy.size) * self.dt if tt is None else tt
-            init = KautzBasis(continuous_poles(self.estimator_.basis_)[: self._core_n])
-            model = optimize_poles(grid, record, init, kind="step").model
-        md = discretize_model(model, self.dt)
-        offset = base_y - md.dc_gain * (base_u - self.input_offset)
-        width, level = band
-        limit = self.max_relative_width
-        if kind == "dnn-update" and limit is not None and not width <= limit:
-            why = (
-                f"the {100 * level:g} % band is {width:.3g} of the response (RMS half-width "
-                f"over RMS), above max_relative_width = {limit:g}" if not math.isnan(level)
-                else f"the estimator gives no uncertainty (no estimate method) and "
-                f"max_relative_width = {limit:g} is set"
-            )
-            return self._finish(kind, start, False, f"deferred: {why}", md, offset,
-                                math.nan, math.nan, None, band=band)
-        u_all, y_all = self._buffer()
-        n_w = min(self.reid_samples, u_all.size)
-        n_val = int(self.validation_fraction * n_w)
-        if n_val >= 10 and np.isfinite(y_all[-n_val:]).sum() >= 10:
-            h0 = max(0, u_all.size - n_w - self.burn_in)
-            return self._judge(kind, start, md, offset, u_all[h0:], y_all[h0:], n_val,
-                               band=band)
-        if tt is not None and (
-            tt.size != yy.size or not np.allclose(np.diff(tt), self.dt, rtol=1e-6, atol=0)
-        ):
-            return self._finish(
-                kind, start, False, "no buffered data to validate on, and the step test is "
-                "not on the twin's sampling grid", md, offset, math.nan, math.nan, None,
-                band=band,
-            )
-        # validate on the step test itself: the twin at rest at u0, the step at the first sample
-        n_pre = max(self.burn_in, 1)
-        u_rec = np.concatenate([np.full(n_pre, base_u), np.full(yy.size, base_u + amp)])
-        y_rec = np.concatenate([np.full(n_pre, base_y), yy])
-        return self._judge(kind, start, md, offset, u_rec, y_rec, yy.size, band=band)
+        return dm
 
     def snapshot(self, provenance: str = "rls-update") -> DigitalModel:
         """Publish the fast path's live coefficients as a new model version.
