@@ -5,9 +5,9 @@ parameter, 5 % AR(1) noise, impulse records), the one of ``bench_family.py``; th
 are the same (``family_dataset(family, n_test, 12345)``) and so is the metric: the fit
 percent of each estimate's noise-free response against the noise-free truth, averaged.
 
-* **amortised** -- the shipped model (``examples/amortised_model``, trained on random
-  stable systems only by ``examples/train_amortised.py``), or one trained here
-  (``--train``): network poles, least-squares coefficients;
+* **amortised** -- the shipped model (``src/kautztwin/nn/amortised/pretrained``, trained on
+  random stable systems only by ``examples/amortised_estimator.py --train``), or one
+  trained here (``--train``): network poles, least-squares coefficients;
 * **amortised + VARPRO** -- the same, refined by variable projection from the network's
   poles (:meth:`AmortisedEstimator.estimate` with ``refine=True``);
 * **oracle** -- least squares in the true structure started at the true parameters
@@ -62,7 +62,7 @@ from _common import benchmark_result, machine_info, write_json  # noqa: E402
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 FAMILY = ROOT / "examples" / "family_5th_order.toml"
-MODEL = ROOT / "examples" / "amortised_model"
+MODEL = ROOT / "src" / "kautztwin" / "nn" / "amortised" / "pretrained"  # the shipped model
 TEST_SEED = 12345  # bench_family.py's test records
 
 

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import fnmatch
 import json
+import tomllib
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +17,7 @@ import kautztwin as kt
 from kautztwin.cli.main import main
 from kautztwin.exceptions import DataError, DimensionError, NotFittedError
 from kautztwin.nn.amortised import AmortisedEstimator, random_systems
+from kautztwin.nn.amortised import pretrained as pretrained_module
 from kautztwin.nn.amortised.network import (
     bin_features,
     block_kinds,
@@ -23,7 +27,9 @@ from kautztwin.nn.amortised.network import (
 from kautztwin.nn.amortised.refine import noise_model, theta_from_poles
 from kautztwin.nn.kautz_torch import propagate
 
-SHIPPED = Path(__file__).resolve().parent.parent / "examples" / "amortised_model"
+ROOT = Path(__file__).resolve().parent.parent
+# the shipped model's folder in the source tree, read by path (AmortisedEstimator.load)
+SHIPPED = ROOT / "src" / "kautztwin" / "nn" / "amortised" / "shipped_model"
 
 
 @pytest.fixture(scope="module")
@@ -36,9 +42,9 @@ def tiny():
 
 @pytest.fixture(scope="module")
 def shipped():
-    """The shipped model of examples/amortised_model (accuracy tests)."""
+    """The model shipped in the package, AmortisedEstimator.load_default (accuracy tests)."""
     torch.set_num_threads(1)
-    return AmortisedEstimator.load(SHIPPED)
+    return AmortisedEstimator.load_default()
 
 
 def _theta(rng, kinds, n):
@@ -269,7 +275,121 @@ def test_bad_input_is_a_one_line_error(tiny):
         tiny.project(t, np.exp(-np.outer([1, 2, 3], t)), [[-1, -2, -3], [-1, -2, -3]])
 
 
+# ------------------------------------------------------------------ the shipped model
+def _records():
+    """Three impulse records on different grids: real poles, a pair with a zero, noise."""
+    rng = np.random.default_rng(11)
+    out = []
+    for num, poles, t_end, n in (([2.0], [-1.0, -3.0], 8.0, 160),
+                                 ([1.0, 1.0], [-0.4 + 2.0j, -0.4 - 2.0j, -1.5], 20.0, 400),
+                                 ([3.0], [-0.2, -0.9], 40.0, 300)):
+        t = np.linspace(0.0, t_end, n)
+        _, h = scipy.signal.impulse(scipy.signal.lti(num, np.poly(poles).real), T=t)
+        out.append((t, h + 0.02 * np.abs(h).max() * rng.standard_normal(n)))
+    return out
+
+
+def test_shipped_model_files_are_package_data():
+    # the wheel carries exactly what pyproject.toml declares: every file of the shipped
+    # folder must match a package-data pattern of its package
+    pyproject = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))
+    patterns = pyproject["tool"]["setuptools"]["package-data"]["kautztwin.nn.amortised"]
+    files = sorted(p.name for p in SHIPPED.iterdir())
+    assert files == sorted(pretrained_module.PRETRAINED_FILES)
+    for name in files:
+        assert any(fnmatch.fnmatch(f"shipped_model/{name}", pat) for pat in patterns), name
+
+
+def test_load_default_reads_the_shipped_files(shipped):
+    with pretrained_module.pretrained_folder() as folder:
+        for name in pretrained_module.PRETRAINED_FILES:
+            assert (folder / name).read_bytes() == (SHIPPED / name).read_bytes()
+    assert shipped.max_order == 5 and shipped.get_params()["n_records"] == 40000
+
+
+def test_load_default_predicts_exactly_as_loading_the_folder_by_path(shipped):
+    by_path = AmortisedEstimator.load(SHIPPED)
+    assert by_path.get_params() == shipped.get_params()
+    for key, value in by_path.network_.state_dict().items():
+        torch.testing.assert_close(shipped.network_.state_dict()[key], value, rtol=0, atol=0)
+    for t, y in _records():
+        np.testing.assert_array_equal(shipped.predict_poles(t, y), by_path.predict_poles(t, y))
+        a, b = shipped.estimate(t, y), by_path.estimate(t, y)
+        np.testing.assert_array_equal(a.poles, b.poles)
+        np.testing.assert_array_equal(a.coefficients, b.coefficients)
+        np.testing.assert_array_equal(a.response, b.response)
+
+
+def _zipped_package(tmp_path, names):
+    """A zip holding the shipped files under kautztwin/nn/amortised/shipped_model/."""
+    archive = tmp_path / "kautztwin.zip"
+    with zipfile.ZipFile(archive, "w") as zf:
+        for name in names:
+            zf.write(SHIPPED / name, f"kautztwin/nn/amortised/shipped_model/{name}")
+    return zipfile.Path(archive, "kautztwin/nn/amortised/")
+
+
+def test_load_default_works_from_a_zip_import(shipped, tmp_path, monkeypatch):
+    # a package imported from a zip has no folder on disk: the files are copied out first
+    root = _zipped_package(tmp_path, pretrained_module.PRETRAINED_FILES)
+    monkeypatch.setattr(pretrained_module.resources, "files", lambda package: root)
+    est = AmortisedEstimator.load_default()
+    t, y = _records()[1]
+    np.testing.assert_array_equal(est.estimate(t, y).coefficients,
+                                  shipped.estimate(t, y).coefficients)
+    with pretrained_module.pretrained_folder() as folder:
+        assert folder != SHIPPED
+        assert (folder / "weights.pt").read_bytes() == (SHIPPED / "weights.pt").read_bytes()
+    assert not folder.exists()  # the temporary copy is removed
+
+
+def test_load_default_reports_a_missing_file_in_one_line(tmp_path, monkeypatch):
+    root = _zipped_package(tmp_path, ["estimator.json", "metadata.json"])
+    monkeypatch.setattr(pretrained_module.resources, "files", lambda package: root)
+    with pytest.raises(DataError, match="cannot read the shipped amortised model's "
+                                        "'weights.pt'"):
+        AmortisedEstimator.load_default()
+
+
 # ------------------------------------------------------------------ command line
+def test_cli_estimate_without_model_uses_the_shipped_model(shipped, tmp_path, capsys):
+    t, y = _records()[0]
+    np.savetxt(tmp_path / "rec.csv", np.c_[t, y], delimiter=",", header="t,h", comments="",
+               fmt="%.17g")
+    capsys.readouterr()
+    assert main(["estimate", str(tmp_path / "rec.csv"), "--json"]) == 0
+    got = json.loads(capsys.readouterr().out)
+    assert got["model"] == "shipped" and got["estimator"] == "amortised"
+    want = shipped.estimate(t, y)  # the CSV holds the record to the last bit (%.17g)
+    rec = got["records"][0]
+    np.testing.assert_array_equal(rec["coefficients"], want.coefficients[0])
+    np.testing.assert_array_equal([complex(*p) for p in rec["poles"]], want.poles[0])
+    assert rec["fit_percent"] == want.fit_percent[0]
+    assert main(["estimate", str(tmp_path / "rec.csv")]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].startswith("model: the amortised model shipped with kautztwin")
+    assert lines[1] == f"h: fit {want.fit_percent[0]:.3f} %"
+
+
+def test_cli_estimate_help_names_the_shipped_default(capsys):
+    assert main(["estimate", "--help"]) == 0
+    text = " ".join(capsys.readouterr().out.split())
+    assert "default: the amortised model shipped with kautztwin" in text
+    assert "Without --model, the amortised model shipped with kautztwin is used" in text
+
+
+def test_cli_estimate_without_model_reports_bad_input_in_one_line(tmp_path, capsys):
+    assert main(["estimate", str(tmp_path / "missing.csv")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "missing.csv" in err
+    t = np.linspace(0.0, 5.0, 50)
+    np.savetxt(tmp_path / "flat.csv", np.c_[t, np.ones(t.size)], delimiter=",",
+               header="t,h", comments="")
+    assert main(["estimate", str(tmp_path / "flat.csv")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "constant" in err
+
+
 def test_cli_trains_and_estimates_with_refinement(tmp_path, capsys):
     torch.set_num_threads(1)
     out = tmp_path / "run"
@@ -302,7 +422,7 @@ def test_a_second_map_round_brings_a_noise_free_fit_closer_to_exact():
     # the second search takes its noise scale from the first one's (smaller) residual, so
     # on a noise-free record the data term weighs more and the fit moves towards 100 %
     t, h, _ = _impulse("pair_and_real")
-    one = AmortisedEstimator.load(SHIPPED).estimate(t, h, refine=True)
-    two = AmortisedEstimator.load(SHIPPED).set_params(refine_rounds=2).estimate(
+    one = AmortisedEstimator.load_default().estimate(t, h, refine=True)
+    two = AmortisedEstimator.load_default().set_params(refine_rounds=2).estimate(
         t, h, refine=True)
     assert 100.0 - two.fit_percent[0] < 0.5 * (100.0 - one.fit_percent[0])

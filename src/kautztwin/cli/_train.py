@@ -36,16 +36,23 @@ against the noise-free truth).  See docs/nn.md for the spec format.
 time measured in record lengths, so that it applies to any plant's impulse
 record; 'kautztwin estimate --model OUT/model [--refine]' then estimates any
 record (--refine: variable projection from the network's poles).  Writes
-OUT/model/ and OUT/report.json.  See docs/nn.md, "One network for any plant".
+OUT/model/ and OUT/report.json.  kautztwin ships one such model, trained with
+the defaults: 'kautztwin estimate' uses it when --model is left out.  See
+docs/nn.md, "One network for any plant".
 """
 
 ESTIMATE_DESCRIPTION = """\
 Apply a trained estimator to measured records: prints the Kautz coefficients,
-poles and the fit of the estimated model to each record.  The records must be
-sampled on the model's training grid; another grid or length is an error.
-Several response columns (--response a,b,c) are several records.  An amortised
-model (train --amortised) takes impulse records on any grid starting at the
-impulse (t >= 0); --refine polishes its poles by variable projection.
+poles and the fit of the estimated model to each record.  Several response
+columns (--response a,b,c) are several records.
+
+Without --model, the amortised model shipped with kautztwin is used (5 poles,
+trained on random stable systems of orders 1..5; AmortisedEstimator.load_default
+in Python).  An amortised model (the shipped one, or one from train --amortised)
+takes impulse records on any grid starting at the impulse (t >= 0); --refine
+polishes its poles by variable projection.  A model from train --config or
+--family needs records sampled on its training grid; another grid or length is
+an error.
 """
 
 
@@ -79,12 +86,14 @@ def register(subparsers: argparse._SubParsersAction, common: argparse.ArgumentPa
         "estimate",
         parents=[common],
         allow_abbrev=False,
-        help="estimate Kautz coefficients of records with a trained model",
+        help="estimate Kautz coefficients of records (default: the shipped amortised model)",
         description=ESTIMATE_DESCRIPTION,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     e.add_argument("data", metavar="DATA.csv", help="CSV file with a header row")
-    e.add_argument("--model", required=True, metavar="DIR", help="model folder from 'train'")
+    e.add_argument("--model", metavar="DIR",
+                   help="model folder from 'train' (default: the amortised model shipped "
+                        "with kautztwin)")
     e.add_argument("--time", default="t", metavar="COLUMN", help="time column (default: t)")
     e.add_argument(
         "--response",
@@ -93,7 +102,8 @@ def register(subparsers: argparse._SubParsersAction, common: argparse.ArgumentPa
         help="response column(s), comma-separated; each is one record (default: h)",
     )
     e.add_argument("--refine", action="store_true",
-                   help="amortised models: refine the poles by variable projection")
+                   help="amortised models (the default one included): refine the poles by "
+                        "variable projection")
     e.add_argument("--json", action="store_true", help="print one JSON object")
     e.set_defaults(run=run_estimate)
 
@@ -214,7 +224,7 @@ def run_estimate(args: argparse.Namespace) -> int:
     from ..experiments.training import estimate_records, load_estimator
 
     names = [c.strip() for c in args.response.split(",") if c.strip()]
-    if _is_amortised(args.model):
+    if args.model is None or _is_amortised(args.model):
         return _estimate_amortised(args, names)
     if args.refine:
         raise CLIError("--refine applies to amortised models (train --amortised) only")
@@ -251,6 +261,9 @@ def run_estimate(args: argparse.Namespace) -> int:
     return 0
 
 
+_SHIPPED = "shipped"  # the "model" of the JSON output without --model
+
+
 def _is_amortised(model: str) -> bool:
     """Whether the model folder holds an amortised estimator (its ``estimator.json``)."""
     import json
@@ -264,22 +277,33 @@ def _is_amortised(model: str) -> bool:
 
 
 def _estimate_amortised(args: argparse.Namespace, names: list[str]) -> int:
-    """``kautztwin estimate`` with an amortised model: poles, coefficients, fit per record."""
+    """``kautztwin estimate`` with an amortised model: poles, coefficients, fit per record.
+
+    Without ``--model`` the shipped model (:meth:`AmortisedEstimator.load_default`); the
+    JSON names it ``"shipped"`` and the text output says so in its first line.
+    """
     from ..data.csv import read_columns
     from ..nn.amortised import AmortisedEstimator
 
-    estimator = AmortisedEstimator.load(args.model)
     cols = read_columns(args.data, [args.time, *names])
     records = np.array([cols[n] for n in names])
+    shipped = args.model is None
+    estimator = AmortisedEstimator.load_default() if shipped else AmortisedEstimator.load(
+        args.model)
     est = estimator.estimate(cols[args.time], records, refine=args.refine)
     if args.json:
         body = est.to_dict()
-        print_json({"model": args.model, "estimator": "amortised", "refined": est.refined,
+        print_json({"model": _SHIPPED if shipped else args.model, "estimator": "amortised",
+                    "refined": est.refined,
                     "records": [
                         {"name": n, "poles": p, "coefficients": c, "fit_percent": f}
                         for n, p, c, f in zip(names, body["poles"], body["coefficients"],
                                               body["fit_percent"], strict=True)]})
         return 0
+    if shipped:
+        sys.stdout.write(f"model: the amortised model shipped with kautztwin (orders "
+                         f"1..{estimator.max_order}, random stable systems; --model DIR "
+                         f"for another)\n")
     for name, c, poles, fit in zip(names, est.coefficients, est.poles, est.fit_percent,
                                    strict=True):
         pole_text = ", ".join(

@@ -2,8 +2,9 @@
 
 Modules: ``systems`` (random stable systems on a normalised time axis, the training
 draws), ``network`` (record features to second-order blocks, the differentiable basis),
-``training`` (end to end on the fit of the noise-free responses) and ``estimator``
-(:class:`AmortisedEstimator`: fit, estimate, refine, files).
+``training`` (end to end on the fit of the noise-free responses), ``estimator``
+(:class:`AmortisedEstimator`: fit, estimate, refine, files) and ``pretrained`` (the
+shipped model's folder, package data: :meth:`AmortisedEstimator.load_default`).
 """
 
 from __future__ import annotations
