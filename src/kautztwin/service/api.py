@@ -54,7 +54,6 @@ the state the endpoints read and the job queue are in :mod:`.twin_view`.
 
 import asyncio
 import contextlib
-import gc
 import json
 import logging
 import math
@@ -86,6 +85,7 @@ from .http_common import (
     who_wrote,
     write_guard,
 )
+from .process import freeze_garbage, thaw_garbage
 from .twin_view import ApiError, RateLimiter, TwinView, _num
 
 __all__ = ["ApiServer", "HttpThread", "ReidentifyRequest", "SetpointRequest", "WhatIfRequest",
@@ -679,12 +679,8 @@ class ApiServer:
         http.start(timeout)
         self._http = http
         self.url = http.url
-        # The handlers' garbage triggers full cyclic collections, which walk every object of
-        # the process holding the interpreter lock (about 0.1 s with the ~10^5 objects of the
-        # libraries and the built twin) and stall the sample loop.  Freeze what exists now
-        # (modules, the twin, the server): full collections then walk only newer objects.
-        gc.collect()  # once, before the loop starts: no garbage is frozen
-        gc.freeze()
+        # the handlers' garbage triggers full collections: see kautztwin.service.process
+        freeze_garbage()
         self.ready.set()
         _logger.info("http", extra={"event": "http", "fields": {
             "url": self.url, "docs": f"{self.url}/docs", "token": self.token_set}})
@@ -713,4 +709,4 @@ class ApiServer:
             self._http.stop(timeout)
         self._http = None
         self.app.state.close_reads()
-        gc.unfreeze()  # the frozen objects may be collected again once they are garbage
+        thaw_garbage()  # the frozen objects may be collected again once they are garbage

@@ -27,7 +27,6 @@ block the loop's commits).
 """
 
 
-import gc
 import logging
 import math
 import os
@@ -55,6 +54,7 @@ from .http_common import (
     server_address,
     write_guard,
 )
+from .process import freeze_garbage, thaw_garbage
 from .twin_view import ApiError, RateLimiter, _num
 
 __all__ = ["FleetApiServer", "FleetHistoryReader", "create_fleet_app"]
@@ -382,8 +382,7 @@ class FleetApiServer:
         http = HttpThread(self.app, self.host, self.port)
         http.start(timeout)
         self._http, self.url = http, http.url
-        gc.collect()  # as ApiServer: full collections then walk only newer objects
-        gc.freeze()
+        freeze_garbage()  # as ApiServer: full collections then walk only newer objects
         _logger.info("http", extra={"event": "http", "fields": {
             "url": self.url, "docs": f"{self.url}/docs", "token": self._token is not None}})
 
@@ -399,5 +398,5 @@ class FleetApiServer:
             self._http.stop(timeout)
         self._http = None
         self.app.state.close_reads()
-        gc.unfreeze()
+        thaw_garbage()
 

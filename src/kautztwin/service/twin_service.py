@@ -23,7 +23,6 @@ logged in the store.
 
 from __future__ import annotations
 
-import gc
 import json
 import logging
 import math
@@ -37,6 +36,7 @@ from typing import Any
 
 from ..exceptions import DataError
 from .config import ServiceConfig
+from .process import freeze_garbage
 
 __all__ = ["TwinService", "configure_logging", "load_estimator"]
 
@@ -114,19 +114,6 @@ def configure_logging(level: str = "info", file: str | Path | None = None,
 
 def _log(event: str, level: int = logging.INFO, **fields: Any) -> None:
     _logger.log(level, event, extra={"event": event, "fields": fields})
-
-
-def _freeze_garbage() -> None:
-    """Collect once, then leave everything that exists now out of later cyclic collections.
-
-    A full collection walks every object of the process while it holds the GIL: with the
-    libraries of a twin loaded that took 90 to 330 ms here, 45 to 165 samples of the
-    hydraulic drive at x10, during which the loop reads nothing and the plant's input
-    holds.  Objects that exist now (modules, the built twin, link and store) live as
-    long as the service; frozen, later collections walk only the newer ones.
-    """
-    gc.collect()
-    gc.freeze()
 
 
 def load_estimator(path: str | Path) -> Any:
@@ -277,7 +264,7 @@ class TwinService:
         estimator = None
         if cfg.estimator_path is not None:
             estimator = load_estimator(cfg.estimator_path)
-        _freeze_garbage()  # the libraries, before a live plant's clock runs: the long one
+        freeze_garbage()  # the libraries, before a live plant's clock runs: the long one
         if p["kind"] in ("opcua", "mqtt"):
             _log("connecting", link=p["kind"],
                  endpoint=p["endpoint"] if p["kind"] == "opcua" else p["broker"],
@@ -455,7 +442,7 @@ class TwinService:
                 api.start()  # the HTTP API of [http] (a busy port: a DataError, nothing run)
             state = twin.start(resume=cfg.values["history"]["resume"])
             resumed = twin.k > 0
-            _freeze_garbage()  # the twin, link and store built since: a short collection
+            freeze_garbage()  # the twin, link and store built since: a short collection
             _log("start", plant=self.twin_config.plant, link=cfg.plant["kind"],
                  endpoint=cfg.plant["endpoint"] or "in-process", run_id=twin.run_id,
                  resumed=resumed, k=twin.k, version=state.version,
