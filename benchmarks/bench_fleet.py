@@ -18,7 +18,11 @@ Run::
 and it writes ``benchmarks/results/fleet.json``.  ``--quick`` measures fewer steps.
 ``--ray N`` runs only the Ray check (N assets on 2 local workers against one process,
 merged into the JSON as ``ray_N``); ``--ray 2000 --kill`` is issue #15's acceptance check
-(one worker killed mid-run; about two CPU-hours).
+(one worker killed mid-run).  The Ray check runs ``--duration`` plant seconds (default 40:
+the quick hydraulic profile's own run, 8 s of identification, so that every drift event
+has the profile's 15 s recovery window inside the run); the processes import a snapshot of
+the package taken at the start, so that the shard restarted after the kill runs the same
+code on a tree that is being edited.
 """
 
 from __future__ import annotations
@@ -29,6 +33,7 @@ import json
 import os
 import platform
 import resource
+import sys
 import tempfile
 import time
 from dataclasses import replace
@@ -200,7 +205,6 @@ def ray_check(n: int, duration: float, kill: bool = False) -> dict[str, Any]:
     import signal
     import sqlite3
     import subprocess
-    import sys
 
     import ray
 
@@ -210,7 +214,22 @@ def ray_check(n: int, duration: float, kill: bool = False) -> dict[str, Any]:
     cfg = TwinConfig.for_plant("hydraulic", duration=duration, quick=True, static_twin=False,
                                retune=False)
     out: dict[str, Any] = {"assets": n, "duration_s": duration}
+    # Ray lowers its workers' priority by 15 (to nice 19 under a driver at nice 10), which
+    # starves the shards on a shared machine: they run at the driver's priority instead
+    os.environ.setdefault("RAY_worker_niceness", "0")
     with tempfile.TemporaryDirectory() as tmp:
+        # The reference, the shards and a shard restarted after the kill import a snapshot of
+        # the package taken now: on a tree that others edit meanwhile, a restarted shard
+        # would otherwise recompute its committed samples with other code.
+        import shutil
+
+        import kautztwin
+
+        snap = Path(tmp) / "src"
+        shutil.copytree(Path(kautztwin.__file__).parent, snap / "kautztwin",
+                        ignore=shutil.ignore_patterns("__pycache__"))
+        os.environ["PYTHONPATH"] = os.pathsep.join(
+            [str(snap)] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p])
         # the single-process reference runs beside the shards, in a process of its own
         ref = Path(tmp) / "single.pkl"
         proc = subprocess.Popen([sys.executable, __file__, "--ray-single", str(n),
@@ -220,22 +239,38 @@ def ray_check(n: int, duration: float, kill: bool = False) -> dict[str, Any]:
             actors = make_actors(n, cfg, n_shards=2, seed=7, drift_spread=0.3,
                                  store_dir=tmp if kill else None)
             pids = ray.get([a.pid.remote() for a in actors])
+
+            @ray.remote(num_cpus=0)  # the shards hold the CPUs
+            def package_path() -> str:
+                import kautztwin as kt
+
+                return str(kt.__file__)
+
+            out["workers_import"] = ray.get(package_path.remote())
+            print(f"  Ray workers import {out['workers_import']}", flush=True)
             refs = [a.run.remote() for a in actors]
             if kill:
                 shard0 = (n + 1) // 2
                 k_kill = cfg.n_ident + (cfg.n_samples - cfg.n_ident) // 2
                 db = Path(tmp) / "shard_0.sqlite"
-                committed = 0
-                while committed < shard0 * k_kill:
-                    time.sleep(0.5)
+                # a commit writes whole steps (every asset of a sample), so asset 0's last
+                # stored k tells the progress: an index look-up, not a count of the rows
+                poll = ("SELECT MAX(k) FROM fleet_samples WHERE asset = 0 AND run_id = "
+                        "(SELECT MAX(run_id) FROM fleet_runs)")
+                steps = 0
+                while steps < k_kill:
+                    time.sleep(2.0)
                     try:
                         with sqlite3.connect(db) as con:
-                            committed = con.execute(
-                                "SELECT COUNT(*) FROM fleet_samples").fetchone()[0]
+                            last = con.execute(poll).fetchone()[0]
+                        steps = 0 if last is None else int(last) + 1
                     except sqlite3.Error:
-                        committed = 0
+                        steps = 0
                 os.kill(pids[0], signal.SIGKILL)
+                with sqlite3.connect(db) as con:
+                    committed = con.execute("SELECT COUNT(*) FROM fleet_samples").fetchone()[0]
                 out["killed_after_committed_rows"] = int(committed)
+                out["killed_after_committed_steps"] = int(committed) // shard0
                 out["killed_at_s"] = time.perf_counter() - t0
                 print(f"  killed shard 0 after {committed} committed rows", flush=True)
             parts = ray.get(refs)
@@ -260,6 +295,7 @@ def ray_check(n: int, duration: float, kill: bool = False) -> dict[str, Any]:
             raise RuntimeError("the single-process reference run failed")
         with open(ref, "rb") as fh:
             single, assets, t_single = pickle.load(fh)
+        single = replace(single, config=cfg)  # sent without it (a mapping proxy does not pickle)
     out["single_process_wall_s"] = t_single
     sharded = merge_runs(cfg, parts)
     assets_s: list[dict[str, float]] = []
@@ -271,6 +307,8 @@ def ray_check(n: int, duration: float, kill: bool = False) -> dict[str, Any]:
     same = {k: s1[k] == s2[k] for k in keys}
     diff = {name: float(np.nanmax(np.abs(single.arrays[name] - sharded.arrays[name])))
             for name in ("y", "u", "y_pred")}
+    out["shard_timings_s"] = [p["timings"] for p in
+                              sorted(parts, key=lambda p: int(p["indices"][0]))]
     out.update({"ray_2_workers_wall_s": t_sharded, "metrics_equal": same,
                 "max_abs_difference": diff, "resume": dict(sharded.resume), "summary": s1})
     return out
@@ -282,6 +320,9 @@ def single_reference(n: int, duration: float, path: str) -> None:
 
     cfg = TwinConfig.for_plant("hydraulic", duration=duration, quick=True, static_twin=False,
                                retune=False)
+    import kautztwin
+
+    print(f"  single process imports {kautztwin.__file__}", flush=True)
     t0 = time.perf_counter()
     plant, assets = hydraulic_fleet(n, cfg, seed=7, drift_spread=0.3)
     with Fleet(plant, cfg, workers=2) as fleet:
@@ -289,7 +330,7 @@ def single_reference(n: int, duration: float, path: str) -> None:
     t_single = time.perf_counter() - t0
     print(f"  single process: {t_single:.0f} s", flush=True)
     with open(path, "wb") as fh:
-        pickle.dump((single, assets, t_single), fh)
+        pickle.dump((replace(single, config=None), assets, t_single), fh)
 
 
 def rss_mib() -> float:
@@ -305,19 +346,26 @@ def main() -> None:
     ap.add_argument("--kill", action="store_true",
                     help="with --ray: kill one worker mid-run (it resumes from its store)")
     ap.add_argument("--ray-single", type=int, default=0, help=argparse.SUPPRESS)
-    ap.add_argument("--duration", type=float, default=10.0, help=argparse.SUPPRESS)
+    ap.add_argument("--duration", type=float, default=40.0,
+                    help="with --ray: plant seconds of the run (default 40: the quick hydraulic "
+                    "profile's own length, 8 s identification; every drift event then has the "
+                    "profile's 15 s recovery window inside the run)")
+    ap.add_argument("--json", default="", help="with --ray: the JSON file to merge into "
+                    "(default benchmarks/results/fleet.json)")
     ap.add_argument("--save", default="", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.ray_single:
         single_reference(args.ray_single, args.duration, args.save)
         return
     if args.ray:
-        old = json.loads(OUT.read_text()) if OUT.exists() else {}
+        out = Path(args.json) if args.json else OUT
+        old = json.loads(out.read_text()) if out.exists() else {}
         key = f"ray_{args.ray}" + ("_kill" if args.kill else "")
-        old[key] = ray_check(args.ray, 10.0, kill=args.kill)
+        old[key] = ray_check(args.ray, args.duration, kill=args.kill)
+        old[key]["command"] = " ".join(["benchmarks/bench_fleet.py", *sys.argv[1:]])
         print(json.dumps(old[key]["metrics_equal"]), old[key]["max_abs_difference"],
               old[key].get("resume"), old[key].get("every_sample_exactly_once"))
-        OUT.write_text(json.dumps(old, indent=2, default=float))
+        out.write_text(json.dumps(old, indent=2, default=float))
         return
     steps = 20 if args.quick else 60
     results: dict[str, Any] = {

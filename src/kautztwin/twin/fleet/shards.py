@@ -10,7 +10,8 @@ the single-process one.
 
 **What is shared.**  Nothing but the driver's arguments: each actor builds
 its plants, twins and worker pool itself and writes its own SQLite store
-``store_dir/shard_<j>.sqlite`` (WAL, asset ids of the whole fleet).  On a
+``store_dir/shard_<j>.sqlite`` (WAL; its rows number the shard's assets ``0 .. n_j - 1``:
+row asset ``i`` of shard ``j`` is the fleet's asset ``shard_indices(n, S)[j][i]``).  On a
 multi-node cluster ``store_dir`` must be a path every node can write (a
 shared file system), or each node keeps its shards' files on its own disk.
 
