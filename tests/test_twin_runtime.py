@@ -815,3 +815,14 @@ def test_background_estimator_retraining_is_applied_later(outcome, event, after)
     accepted = int(event == "estimator-update")
     assert metrics["estimator_retrainings"] == {"accepted": accepted, "rejected": 1 - accepted}
     assert not _opt_threads()
+
+
+def test_a_config_pickles_to_an_equal_config():
+    # a process pool (the fleet's workers, a Ray shard) gets its copy by pickle
+    import pickle
+
+    cfg = TwinConfig.for_plant("hydraulic", quick=True, seed=3, drift_events=(5.0,))
+    copy = pickle.loads(pickle.dumps(cfg))
+    assert copy == cfg and copy.to_dict() == cfg.to_dict()
+    with pytest.raises(TypeError):
+        copy.updater["max_iter"] = 1  # still read-only

@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field, fields, replace
 from types import MappingProxyType
 from typing import Any
 
@@ -103,6 +103,11 @@ class FaultConfig:
             except ValueError:
                 raise DataError(f"faults: {key} must be a number, got {value!r}") from None
         return cls(**values)
+
+
+def _config_from_fields(cls: type, values: dict[str, Any]) -> Any:
+    """Unpickle a :class:`TwinConfig` (its checks run again)."""
+    return cls(**values)
 
 
 @dataclass(frozen=True)
@@ -256,6 +261,12 @@ class TwinConfig:
             raise DataError(f"commit_every must be >= 1, got {self.commit_every}")
         object.__setattr__(self, "updater", MappingProxyType(dict(self.updater)))
         object.__setattr__(self, "drift_events", tuple(float(e) for e in self.drift_events))
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        """Pickle by fields (the read-only ``updater`` view as a dict): a process pool's copy."""
+        values = {f.name: getattr(self, f.name) for f in fields(self)}
+        values["updater"] = dict(self.updater)
+        return (_config_from_fields, (type(self), values))
 
     # ------------------------------------------------------------------ derived
     @property
