@@ -198,7 +198,7 @@ class FleetUpdater:
             self.B[i] = np.array(est.basis_.B).reshape(-1)
             self.wide_basis.append(est.basis_)
             self.digital_models.append(u.digital_model)
-            self.core_n[i] = u._core_n
+            self.core_n[i] = u.n_core_functions
         self.n_updates = np.zeros(N, dtype=np.int64)
         self.theta_frozen = self.theta.copy()
         self.monitor = monitor
