@@ -41,7 +41,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Sequence
-from concurrent.futures import Executor, Future, ProcessPoolExecutor, ThreadPoolExecutor
+from concurrent.futures import Executor, Future, ThreadPoolExecutor
 from concurrent.futures import wait as wait_futures
 from dataclasses import dataclass
 from typing import Any, Protocol
@@ -52,7 +52,7 @@ from ...approx.model import KautzModel
 from ...exceptions import DataError, KautzTwinError
 from ..prediction import MPCSettings
 from ..prediction.controller import _prepare_controller, _PreparedController
-from ..update.worker import WORKER_KINDS, _process_context, _process_init
+from ..update.worker import WORKER_KINDS, single_worker
 from .optimizer import ControllerTuning, EstimatorRetraining
 
 __all__ = ["OptimizationJob", "OptimizationWorker", "TuningContext"]
@@ -241,7 +241,7 @@ class OptimizationWorker:
         if kind not in WORKER_KINDS:
             raise ValueError(f"kind must be 'thread' or 'process', got {kind!r}")
         self.kind = kind
-        self._process: ProcessPoolExecutor | None = None
+        self._process: Executor | None = None
         self.optimizer = optimizer
         self._event = event
         self._install = install
@@ -253,13 +253,12 @@ class OptimizationWorker:
         self.next: OptimizationJob | None = None
         self._waiting: list[Future[Any]] = []
 
-    def _child(self) -> ProcessPoolExecutor | None:
+    def _child(self) -> Executor | None:
         """The child process of a process worker (started at first use); ``None``: a thread."""
         if self.kind != "process":
             return None
         if self._process is None:
-            self._process = ProcessPoolExecutor(
-                max_workers=1, mp_context=_process_context(), initializer=_process_init)
+            self._process = single_worker("process", "kautztwin-tune")
         return self._process
 
     def prestart(self) -> None:

@@ -43,7 +43,7 @@ checks that the split path gives the synchronous path's result bit for bit.
 from __future__ import annotations
 
 import time
-from concurrent.futures import Executor, Future, ProcessPoolExecutor, ThreadPoolExecutor
+from concurrent.futures import Executor, Future
 from dataclasses import dataclass
 from typing import Any
 
@@ -57,7 +57,7 @@ from ...exceptions import DataError
 from ..digital import discretize_model
 from ..update import ModelUpdate, Updater
 from ..update.steptest import step_test_record
-from ..update.worker import WORKER_KINDS, _process_context, _process_init, _ready
+from ..update.worker import WORKER_KINDS, _ready, single_worker
 
 __all__ = ["PoleJob", "PoleWorker", "judge_pole_candidate", "pole_candidate", "pole_job"]
 
@@ -289,12 +289,7 @@ class PoleWorker:
 
     def _start(self) -> Executor:
         if self._executor is None:
-            if self.kind == "process":
-                self._executor = ProcessPoolExecutor(
-                    max_workers=1, mp_context=_process_context(), initializer=_process_init)
-            else:
-                self._executor = ThreadPoolExecutor(
-                    max_workers=1, thread_name_prefix="kautztwin-poles")
+            self._executor = single_worker(self.kind, "kautztwin-poles")
         return self._executor
 
     def prestart(self) -> None:

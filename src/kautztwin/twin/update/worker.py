@@ -165,6 +165,37 @@ def _process_context() -> multiprocessing.context.BaseContext:
     return multiprocessing.get_context("forkserver" if "forkserver" in methods else "spawn")
 
 
+def single_worker(kind: str, name: str) -> Executor:
+    """One background worker: a thread, or a child process (``forkserver``, niceness +5).
+
+    The update module's re-identification, the resync pole re-optimisation and the
+    MPC weight retuning each start theirs with it (see the module notes).
+
+    Parameters
+    ----------
+    kind : {'thread', 'process'}
+        Where the jobs run.
+    name : str
+        The thread's name prefix (a thread worker).
+
+    Returns
+    -------
+    concurrent.futures.Executor
+        With one worker.
+
+    Raises
+    ------
+    ValueError
+        If ``kind`` is not one of the two.
+    """
+    if kind == "process":
+        return ProcessPoolExecutor(max_workers=1, mp_context=_process_context(),
+                                   initializer=_process_init)
+    if kind == "thread":
+        return ThreadPoolExecutor(max_workers=1, thread_name_prefix=name)
+    raise ValueError(f"kind must be 'thread' or 'process', got {kind!r}")
+
+
 class _ReidWorker:
     """The single worker (thread or process) of the background accurate path and its attempt.
 
@@ -187,12 +218,7 @@ class _ReidWorker:
 
     def _start(self) -> Executor:
         if self._executor is None:
-            if self.kind == "process":
-                self._executor = ProcessPoolExecutor(
-                    max_workers=1, mp_context=_process_context(), initializer=_process_init)
-            else:
-                self._executor = ThreadPoolExecutor(
-                    max_workers=1, thread_name_prefix="kautztwin-reidentify")
+            self._executor = single_worker(self.kind, "kautztwin-reidentify")
         return self._executor
 
     def prestart(self) -> None:
