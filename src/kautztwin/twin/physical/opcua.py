@@ -664,24 +664,32 @@ class OPCUAPlant(SampleLink):
         One write is in flight at a time; inputs given meanwhile are coalesced:
         the newest goes out when the write in flight completes.
         """
-        loop, node = self._loop, self._u_node
-        if loop is None or node is None or not self._link_up:
-            return "not sent: link down"
+        loop = self._loop
         with self._cond:
+            node, connection = self._u_node, self._connections
+            if loop is None or node is None or not self._link_up:
+                return "not sent: link down"
             if self._w_busy:
                 self._w_next = raw
                 return "sent"
             self._w_busy = True
         try:
-            asyncio.run_coroutine_threadsafe(self._write_chain(node, raw), loop)
+            asyncio.run_coroutine_threadsafe(self._write_chain(node, raw, connection), loop)
         except RuntimeError as exc:  # the loop closed
             with self._cond:
                 self._w_busy = False
             return f"failed: {' '.join(str(exc).split()) or type(exc).__name__}"
         return "sent"
 
-    async def _write_chain(self, node: Any, raw: float) -> None:
-        """Write ``raw``, then each input coalesced meanwhile, recording each result."""
+    async def _write_chain(self, node: Any, raw: float, connection: int) -> None:
+        """Write ``raw``, then each input coalesced meanwhile, recording each result.
+
+        A write that completes after its connection went down is counted, but its
+        status is not reported on a reading: the readings of the outage said "not
+        sent: link down", and a reading after the reconnection must not carry the
+        failure of a write sent before it. Coalesced inputs go out over the
+        connection that is up when they are sent.
+        """
         while True:
             try:
                 result = await asyncio.wait_for(self._write_async(node, raw),
@@ -689,8 +697,9 @@ class OPCUAPlant(SampleLink):
             except Exception as exc:  # a timeout
                 result = f"failed: {' '.join(str(exc).split()) or type(exc).__name__}"
             with self._cond:
-                self._w_result = result
-                self._w_done += 1
+                if self._link_up and connection == self._connections:
+                    self._w_result = result
+                    self._w_done += 1
                 if result == "ok":
                     self._u = self._eng("u", raw)
                 elif result.startswith("rejected"):
@@ -698,9 +707,10 @@ class OPCUAPlant(SampleLink):
                 else:
                     self.counters["failed_writes"] += 1
                 nxt, self._w_next = self._w_next, None
-                if nxt is None or not self._link_up:
+                if nxt is None or not self._link_up or self._u_node is None:
                     self._w_busy = False
                     return
+                node, connection = self._u_node, self._connections
             raw = nxt
 
     async def _write_async(self, node: Any, raw: float) -> str:
