@@ -23,7 +23,7 @@ def _tuning_args():
             twin.step()
         model = twin.updater.digital_model.model
         v = np.full(twin.k, cfg.operating_input)
-    return (Optimizer(), model, cfg.mpc, 3.0, cfg.operating_input, 98.0, True, cfg.mpc, None,
+    return (Optimizer(), model, cfg.mpc, 3.0, cfg.operating_input, 98.0, cfg.mpc, None,
             v, np.zeros_like(v), 0.0, None)
 
 
@@ -85,14 +85,19 @@ def test_a_background_twin_with_a_process_worker_tunes_in_its_child():
         twin.start()
         worker = twin._versions.worker
         assert worker.kind == "process" and worker._process is not None  # prestarted
-        while twin.updater is None:  # to the closed loop: the first version's tuning starts
-            twin.step()
+        while twin.updater is None:  # to the closed loop: the first version is tuned here
+            state = twin.step()
+        assert "controller" in state.events and not twin.optimizing
+        twin.step()
+        dm = twin.updater.snapshot("rls-consolidation")  # a new version: tuned in the child
+        assert "model-version" in twin.step().events
         assert twin.optimizing and twin.wait_optimization(120)
         state = twin.step()  # applies it
         assert "controller" in state.events
         run = twin.run(progress=False)
         tunings = [e for e in run.events if e.kind == "controller"]
     assert worker._process is None  # the child is stopped with the twin
-    assert run.status == "finished" and tunings
-    assert all(e.payload["k_submitted"] <= e.k for e in tunings)  # applied when they came in
+    assert run.status == "finished" and "k_submitted" not in tunings[0].payload
+    assert tunings[1].payload["version"] == dm.version
+    assert all(e.payload["k_submitted"] < e.k for e in tunings[1:])  # applied when done
     assert all("normalised IAE" in e.payload["reason"] for e in tunings)

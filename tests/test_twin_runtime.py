@@ -386,15 +386,17 @@ class _ScriptedOptimizer(Optimizer):
 
 
 def _to_closed_loop(twin):
-    """Start and run through the identification; apply the first version's tuning."""
+    """Start and run through the identification and the first closed-loop sample.
+
+    The first version's controller is tuned at the end of the identification, before
+    the first closed-loop sample, in background runs too (no worker involved).
+    """
     twin.start()
-    while twin.k <= twin.config.n_ident:
+    while twin.k < twin.config.n_ident:
         twin.step()
-    if twin.background:
-        assert twin.optimizing and twin.wait_optimization(30)
-        assert "controller" in twin.step().events
-    else:
-        twin.step()
+    state = twin.step()  # the identification, the first tuning and the first command
+    assert "controller" in state.events and not twin.optimizing
+    twin.step()
 
 
 def _step_until(twin, kind, n=100):
@@ -434,8 +436,8 @@ def test_background_retuning_runs_off_the_sampling_path_and_is_applied_later():
     try:
         for tw in (sync, twin):
             _to_closed_loop(tw)
-        # the first version ran on the configured weights until its tuning (the same) came in
-        assert opt.threads[0].startswith("kautztwin-optimize")
+        # the first version's tuning ran before the closed loop, in the sampling thread
+        assert opt.threads == ["MainThread"] and not _opt_threads()
         np.testing.assert_array_equal(twin.result().arrays["u"], sync.result().arrays["u"])
         dm_sync = sync.updater.snapshot("rls-consolidation")
         dm = twin.updater.snapshot("rls-consolidation")

@@ -18,8 +18,9 @@ rebuild on the whole history bit for bit.  At most one job is in flight: a
 newer version makes it stale, its unapplied parts are logged as
 ``'controller-rejected'`` / ``'estimator-rejected'`` ("discarded ...:
 version N superseded it"), and the newest version's job starts when the
-worker is free.  The first version's tuning runs there too: the first
-controller uses the configured weights until it comes in.
+worker is free.  The first version's tuning does not run there: it is
+tuned before the first closed-loop sample (see
+:meth:`kautztwin.twin.runtime.versions.ModelVersions.first`).
 
 **Process worker** (``kind='process'``, chosen with the update module's
 ``worker``: a live link's twin): the weight retuning - closed-loop simulations
@@ -120,7 +121,6 @@ class OptimizationJob:
     k: int
     t: float
     model: KautzModel
-    initial: bool
     u_op: float
     y_op: float
     tune: bool
@@ -148,7 +148,7 @@ def _ready() -> bool:
 
 def _tune_in_worker(
     optimizer: _Tuner, model: KautzModel, mpc: MPCSettings, step: float, u_op: float,
-    y_op: float, initial: bool, current: MPCSettings,
+    y_op: float, current: MPCSettings,
     fallback: tuple[KautzModel, MPCSettings] | None, v_history: NDArray, d_history: NDArray,
     input_offset: float, interim: Future[_PreparedController] | None,
     process: Executor | None = None,
@@ -157,9 +157,8 @@ def _tune_in_worker(
 
     Reads its arguments only (immutable models and settings, copied
     histories): the rules of the runtime's tuning application decide which
-    controller runs next - the model with the tuned (or, for the first
-    version, the running) weights, or the last validated controller when
-    the tuning or the build fails - and it is built here, so that the main
+    controller runs next - the model with the tuned weights, or the last
+    validated controller when the tuning or the build fails - and it is built here, so that the main
     thread only advances it over the samples since.  With ``process`` the
     retuning runs in that child process (this thread waits for it without the
     GIL); a child that fails hands the retuning back to this thread.
@@ -185,16 +184,14 @@ def _tune_in_worker(
         prepared.append((m, s, p))
         return not isinstance(p, DataError)
 
-    rebuild = tuning.accepted or initial
     ok = True
-    if rebuild:
-        settings = tuning.settings if tuning.accepted else current
-        # the main thread already runs (model, current): built there (first version) or interim
-        running = initial or (interim is not None and not interim.cancelled()
-                              and interim.exception() is None)
-        if not (running and settings == current):
-            ok = prepare(model, settings)
-    if (not rebuild or not ok) and fallback is not None:
+    if tuning.accepted:
+        # the main thread may already run (model, current): the interim controller
+        running = (interim is not None and not interim.cancelled()
+                   and interim.exception() is None)
+        if not (running and tuning.settings == current):
+            ok = prepare(model, tuning.settings)
+    if (not tuning.accepted or not ok) and fallback is not None:
         prepare(*fallback)
     return _TuningOutcome(tuning, tuple(prepared))
 
@@ -330,12 +327,12 @@ class OptimizationWorker:
         ex = self._executor
         if job.tune:
             c = self._context(k)
-            if not job.initial:  # the new model with the running weights, until the tuning ends
-                job.interim = ex.submit(_prepare_controller, job.model, c.current, c.v_history,
-                                        c.d_history, c.input_offset)
+            # the new model with the running weights, until the tuning ends
+            job.interim = ex.submit(_prepare_controller, job.model, c.current, c.v_history,
+                                    c.d_history, c.input_offset)
             job.tuning = ex.submit(
                 _tune_in_worker, self.optimizer, job.model, c.mpc, c.step, job.u_op, job.y_op,
-                job.initial, c.current, c.fallback, c.v_history, c.d_history, c.input_offset,
+                c.current, c.fallback, c.v_history, c.d_history, c.input_offset,
                 job.interim, self._child(),
             )
         if job.estimator is not None:
@@ -369,7 +366,7 @@ class OptimizationWorker:
                 fut_t, job.tuning = job.tuning, None
                 out = fut_t.result()
                 self._apply_tuning(out.tuning, job.model, job.version, k, t,
-                                   initial=job.initial, prepared=out.prepared, extra=extra)
+                                   initial=False, prepared=out.prepared, extra=extra)
             if job.tuning is None and job.retraining is not None and job.retraining.done():
                 fut_r, job.retraining = job.retraining, None
                 try:

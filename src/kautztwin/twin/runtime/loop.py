@@ -116,15 +116,17 @@ MAX_INPUT_WAIT = 50
 MAX_QUEUED = 5
 
 
-def _step_updater(updater: Updater, u: float, y: float, t: float, *, adapt: bool) -> Any:
-    """``updater.step``; with ``adapt=False`` its recursive estimator only predicts and advances."""
-    if adapt or not updater.fast_update:
-        return updater.step(u, y, t)
-    updater.fast_update = False
+def _step_updater(updater: Updater, u: float, y: float, t: float, *, adapt: bool,
+                  judge: bool = True) -> Any:
+    """``updater.step``; with ``adapt=False`` its recursive estimator only predicts and
+    advances, with ``judge=False`` its monitor does not see the sample."""
+    fast, monitoring = updater.fast_update, updater.monitoring
+    updater.fast_update = fast and adapt
+    updater.monitoring = monitoring and judge
     try:
         return updater.step(u, y, t)
     finally:
-        updater.fast_update = True
+        updater.fast_update, updater.monitoring = fast, monitoring
 
 
 class DigitalTwin:
@@ -458,7 +460,7 @@ class DigitalTwin:
         mpc_ms = math.nan
         if k < self._k_id:
             phase = "identification"
-            u = self._recorded_input(k) if not cfg.controlled else float(self._u_ident[k])
+            u = self._recorded_input(k) if not cfg.controlled else self._ident_input(k)
             v, d = u, 0.0
         elif not cfg.controlled:
             phase = "monitoring"
@@ -569,15 +571,21 @@ class DigitalTwin:
         fit = fit_s = math.nan
         if self.updater is not None and k >= self._k_id:
             # the samples a live plant queued during the identification carry its last input,
-            # held: the twin predicts and stores them but does not adapt on them
-            r = _step_updater(self.updater, u, y_raw, t_k, adapt=k >= self._k_cl)
+            # held: the twin predicts and stores them but neither adapts on them nor judges
+            # its fit on them; the monitors' first window is the closed loop's
+            live = k >= self._k_cl
+            if k == self._k_cl > self._k_id:
+                for upd in (self.updater, self.static):
+                    if upd is not None:
+                        upd.monitor.clear_window()
+            r = _step_updater(self.updater, u, y_raw, t_k, adapt=live, judge=live)
             a["y_pred"][k] = r.y_pred_frozen
             if r.model_update is None:
                 upd_ms = 1e3 * r.elapsed
             fit = self.updater.monitor.fit
             versions.after_update(r, k, t_k, u_op=self._v_prev, offload=self._offloaded(k))
             if self.static is not None:
-                rs = self.static.step(u, y_raw, t_k)
+                rs = _step_updater(self.static, u, y_raw, t_k, adapt=True, judge=live)
                 a["y_pred_static"][k] = rs.y_pred_frozen
                 fit_s = self.static.monitor.fit
         a["update_ms"][k] = upd_ms
@@ -734,6 +742,20 @@ class DigitalTwin:
         except (TypeError, ValueError):
             return 0
         return max(0, delay)
+
+    def _ident_input(self, k: int) -> float:
+        """The identification input of sample ``k`` (controlled run).
+
+        A live plant goes on sampling while the twin identifies (the loop stalls at
+        ``n_ident``), holding the input of the last identification sample: that one is
+        the excitation's centre ``ident_level``, so the plant waits at the operating
+        point it was identified around, not at an edge of the excitation (where the
+        closed loop would start outside the identified range).  Its response falls
+        after the identification record, which it therefore leaves unchanged.
+        """
+        if k == self._k_id - 1 and not self._replayable:
+            return float(self.config.ident_level)
+        return float(self._u_ident[k])
 
     def _recorded_input(self, k: int) -> float:
         u = getattr(self.plant, "u", None)

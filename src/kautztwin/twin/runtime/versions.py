@@ -115,7 +115,8 @@ class ModelVersions:
         u_op : float
             The command in force (where a weight retuning starts).
         offload : bool
-            Tune in the background worker.
+            Later versions are optimised in the background worker (the first
+            controller is always tuned here, before the closed loop starts).
         """
         cfg = self.config
         rec = self.record
@@ -127,13 +128,11 @@ class ModelVersions:
         dm = updater.digital_model
         self.version = dm.version
         rec.store_version(dm, k, t, updater.offset)
-        if cfg.controlled and offload:
-            # the first controller runs on the configured weights until the tuning ends
-            assert cfg.mpc is not None
-            self.control.rebuild(dm.model, cfg.mpc, k)
-            self._offload(dm, k, t, u_op, initial=True)
-            rec.event("phase", k, t, "closed loop: MPC tracking with twin updates", {})
-        elif cfg.controlled:
+        if cfg.controlled:
+            # tuned before the first closed-loop sample, live runs too: their loop stalls
+            # for the identification anyway, with the plant parked at the excitation's
+            # centre, and an untuned first controller (the configured weights) would run
+            # the closed loop's first seconds while a worker tuned it
             self._retune_controller(k, t, u_op, initial=True)
             rec.event("phase", k, t, "closed loop: MPC tracking with twin updates", {})
         else:
@@ -377,16 +376,14 @@ class ModelVersions:
         )
         self.control.apply_tuning(tuning, model, version, k, t, initial=initial)
 
-    def _offload(
-        self, dm: DigitalModel, k: int, t: float, u_op: float, *, initial: bool = False
-    ) -> None:
+    def _offload(self, dm: DigitalModel, k: int, t: float, u_op: float) -> None:
         """Queue the optimisation of a new version for the worker; it supersedes older ones."""
         cfg = self.config
         assert self.updater is not None
         self.worker.supersede(f"version {dm.version} superseded it", k, t)
-        estimator = None if initial else self.updater.dnn
+        estimator = self.updater.dnn
         if not cfg.controlled and estimator is None:
             return
         model, version, u_op, y_op = self._tuning_point(k, u_op)
-        self.worker.queue(OptimizationJob(version, k, t, model, initial, u_op, y_op,
+        self.worker.queue(OptimizationJob(version, k, t, model, u_op, y_op,
                                           cfg.controlled, estimator), k)

@@ -246,6 +246,12 @@ class Updater(StepTestPath, AccuratePath):
     background : bool
         Whether attempts are submitted to the worker (may be switched
         between steps; an attempt in flight is still judged).
+    monitoring : bool
+        Whether :meth:`step` feeds the monitor (``True``; may be switched
+        between steps).  Switched off for samples that say nothing about the
+        model's fit, e.g. a live plant's samples queued while the twin was
+        being built, which carry one held input: a rolling fit percent over an
+        unexcited window divides by the noise and would report a desync.
 
     See Also
     --------
@@ -409,6 +415,7 @@ class Updater(StepTestPath, AccuratePath):
             self.monitor.stride if horizon is None else check_int(horizon, "horizon", 1)
         )
         self.fast_update = bool(fast_update)
+        self.monitoring = True
         self.reidentify_enabled = bool(reidentify)
         if estimator is not None and not callable(getattr(estimator, "predict_models", None)):
             raise DataError("estimator must have a predict_models(responses, t=...) method")
@@ -638,7 +645,8 @@ class Updater(StepTestPath, AccuratePath):
                 est.update(uf, yf)
             else:
                 est.advance(uf)
-            events = self.monitor.update(yf, y_frozen, k=k, t=tf)
+            if self.monitoring:
+                events = self.monitor.update(yf, y_frozen, k=k, t=tf)
         else:
             self._counts["skipped"] += 1
             est.advance(uf)
