@@ -49,6 +49,7 @@ from ...ident.kautz_oe import continuous_poles, filter_states
 from ...metrics import fit_percent_or_nan
 from ..digital import DigitalModel, discretize_model
 from ..update import Updater
+from ..update.judging import candidate_verdict
 from ..update.worker import _ReidJob
 from .assets import reid_job, unpack_fit
 from .sync import FleetMonitor
@@ -511,18 +512,12 @@ class FleetUpdater:
             self.theta[i, n])
         sl = slice(u.size - n_val, u.size)
         fit_c, fit_m = fit_percent_or_nan(y[sl], yc[sl]), fit_percent_or_nan(y[sl], ym[sl])
-        better = math.isfinite(fit_c) and (
-            not math.isfinite(fit_m) or fit_c > fit_m + self.min_improvement)
-        version = self.digital_models[i].version
-        if not better:
-            return ReidOutcome(i, self.k, False,
-                               f"candidate fit {fit_c:.2f} % does not beat the current "
-                               f"{fit_m:.2f} % on {n_val} held-out samples", fit_c, fit_m, version)
-        floor = self.min_candidate_fit
-        if floor is not None and not fit_c >= floor:
-            return ReidOutcome(i, self.k, False,
-                               f"candidate fit {fit_c:.2f} % on {n_val} held-out samples is below "
-                               f"min_candidate_fit = {floor:g} %", fit_c, fit_m, version)
+        accepted, reason = candidate_verdict(fit_c, fit_m, n_val,
+                                             min_improvement=self.min_improvement,
+                                             min_candidate_fit=self.min_candidate_fit)
+        if not accepted:
+            return ReidOutcome(i, self.k, False, reason, fit_c, fit_m,
+                               self.digital_models[i].version)
         dm = self.digital_models[i].with_update(model, kind, fit_c)
         self.digital_models[i] = dm
         self.core_n[i] = model.n_functions
@@ -546,9 +541,7 @@ class FleetUpdater:
         self.monitor.clear_window(i)
         self.model_k[i] = self.k
         self.counts["accepted"][i] += 1
-        return ReidOutcome(i, self.k, True,
-                           f"candidate fit {fit_c:.2f} % beats the current {fit_m:.2f} % on "
-                           f"{n_val} held-out samples", fit_c, fit_m, dm.version)
+        return ReidOutcome(i, self.k, True, reason, fit_c, fit_m, dm.version)
 
     @property
     def offsets(self) -> NDArray[np.float64]:
