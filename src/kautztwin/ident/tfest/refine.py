@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import inspect
 import warnings
 from typing import TYPE_CHECKING, Any
 
@@ -19,10 +18,6 @@ from .statistics import finalize
 
 if TYPE_CHECKING:
     from .estimator import TransferFunctionEstimator
-
-#: ``least_squares`` takes a callback that can stop it (SciPy >= 1.16)
-_HAS_CALLBACK = "callback" in inspect.signature(scipy.optimize.least_squares).parameters
-
 
 def fit_order(tf: TransferFunctionEstimator, recs: list[Record], est: list[Record], n: int,
               m: int, *, starts: list[tuple[NDArray, float]] | None = None
@@ -176,8 +171,7 @@ def _refine_from(tf: TransferFunctionEstimator, prob: _Problem,
     seen to leave it again; the iterate is returned as it is
     (``sol.status == -2``).  Brief refinements do return from there at times
     (a few iterations through the slow region, then back), so they are never
-    stopped.  Needs SciPy >= 1.16 (``least_squares``' callback); with an older
-    SciPy the refinement runs to its end.
+    stopped (``least_squares``' callback, SciPy >= 1.16).
     """
     # the residual of the chosen start is the refinement's first evaluation: kept, not redone
     seen: dict[bytes, NDArray] = {}
@@ -207,7 +201,7 @@ def _refine_from(tf: TransferFunctionEstimator, prob: _Problem,
     if estimate_delay:
         x_scale[-1] = dt
     kw: dict[str, Any] = {}
-    if min_rate is not None and _HAS_CALLBACK:
+    if min_rate is not None:
         def unresolved(intermediate_result: Any) -> None:
             if np.min(-np.roots(unpack(intermediate_result.x)[0]).real) < min_rate:
                 raise StopIteration
