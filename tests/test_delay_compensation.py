@@ -163,9 +163,11 @@ def test_live_loop_starts_the_closed_loop_once_it_has_caught_up():
     cfg = TwinConfig.for_plant("hydraulic", duration=12.0, quick=True, static_twin=False)
     n_id, backlog = cfg.n_ident, 60
 
+    twins = []
+
     def run(plant):
-        twin = DigitalTwin(plant, cfg, background=False)
-        return twin.run(progress=False)
+        twins.append(DigitalTwin(plant, cfg, background=False))
+        return twins[-1].run(progress=False)
 
     plant = _Backlog(HydraulicPlant(dt=0.02, temperature=20.0, noise=0.01, random_state=1),
                      n_id, backlog)
@@ -176,10 +178,18 @@ def test_live_loop_starts_the_closed_loop_once_it_has_caught_up():
     a = live.arrays
     assert np.all(np.isnan(a["mpc_ms"][n_id:k_cl])) and np.all(a["dither"][n_id:k_cl] == 0)
     assert np.isfinite(a["mpc_ms"][k_cl])  # the first decision
-    # the identification's last input held (once the inputs on the wire, <= 7 samples, land)
+    # the identification's last input, the excitation's centre, held (once the inputs on
+    # the wire, <= 7 samples, land): the plant waits at the identified operating point
     applied = np.asarray(plant.applied)
-    assert np.all(applied[n_id + 8:k_cl] == applied[n_id + 8]) and k_cl > n_id + 40
+    assert np.all(applied[n_id + 8:k_cl] == cfg.ident_level) and k_cl > n_id + 40
+    assert abs(applied[n_id - 1] - cfg.ident_level) == pytest.approx(cfg.ident_amplitude)
     assert np.ptp(applied[k_cl:k_cl + 100]) > 0  # then the controller moves it
+    # the first controller was tuned before the first closed-loop sample
+    assert next(e.k for e in live.events if e.kind == "controller") == n_id
+    # the monitor judged none of the queued samples: its first window after the
+    # identification is the closed loop's first window
+    ends = twins[-1].updater.monitor.history.k
+    assert ends[ends >= n_id - 1].min() == k_cl + cfg.monitor_window - 1, ends
     assert np.all(np.isfinite(live.arrays["y_pred"][n_id:k_cl]))  # the twin took them
     starts = [e.payload["k_closed_loop"] for e in live.events
               if e.kind == "phase" and "k_closed_loop" in e.payload]

@@ -655,3 +655,25 @@ def test_updating_twin_stays_synchronised_through_a_40_percent_pole_drift():
     assert np.nanmedian(fast_s) < 5e-3  # the fast path costs well under 5 ms per sample
     assert twin.events and twin.events[0].kind == "desync"
     assert not static.model_updates and static.digital_model.version == 1
+
+
+def test_monitoring_off_leaves_the_monitor_out_and_the_rest_unchanged():
+    """``Updater.monitoring = False``: the samples are predicted and used, not judged."""
+    u, y = _jump(900)
+    on, off = _updater(_exact_twin(), **_KW_JUMP), _updater(_exact_twin(), **_KW_JUMP)
+    off.monitoring = False
+    r_on = [on.step(u[k], y[k], t=k * DT) for k in range(u.size)]
+    r_off = [off.step(u[k], y[k], t=k * DT) for k in range(u.size)]
+    # the jump at sample 500 desynchronises the judged twin, which re-identifies
+    assert any(e.kind == "desync" for r in r_on for e in r.events) and on.counts["attempts"]
+    # unjudged: no window, no event, no attempt, the first model kept ...
+    assert off.monitor.history.k.size == 0 and not off.events and not off.model_updates
+    assert off.counts["attempts"] == 0 and off.digital_model.version == 1
+    # ... while it predicts exactly as the judged twin did up to the first model change
+    k_change = min(mu.k for mu in on.model_updates)
+    np.testing.assert_array_equal([r.y_pred for r in r_off[:k_change]],
+                                  [r.y_pred for r in r_on[:k_change]])
+    off.monitoring = True  # switched back on: judged from the next sample on
+    for k in range(u.size, u.size + 100):
+        off.step(u[k - 400], y[k - 400], t=k * DT)
+    assert off.monitor.history.k.size > 0
