@@ -120,6 +120,8 @@ def _step_updater(updater: Updater, u: float, y: float, t: float, *, adapt: bool
                   judge: bool = True) -> Any:
     """``updater.step``; with ``adapt=False`` its recursive estimator only predicts and
     advances, with ``judge=False`` its monitor does not see the sample."""
+    if adapt and judge:  # every closed-loop sample: nothing to switch
+        return updater.step(u, y, t)
     fast, monitoring = updater.fast_update, updater.monitoring
     updater.fast_update = fast and adapt
     updater.monitoring = monitoring and judge
