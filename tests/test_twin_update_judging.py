@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from kautztwin import KautzBasis, KautzModel
 from kautztwin.exceptions import DataError
 from kautztwin.ident.kautz_oe import filter_states
 from kautztwin.twin.update import RecursiveKautzEstimator, Updater
@@ -79,6 +80,61 @@ def test_judge_candidate_repeats_the_step_test_judgement_bit_for_bit():
     assert mu_a.accepted and mu_b.accepted and mu_a.reason == mu_b.reason
     assert (mu_a.fit_candidate, mu_a.fit_current) == (mu_b.fit_candidate, mu_b.fit_current)
     np.testing.assert_array_equal(a.predict(np.ones(40)), b.predict(np.ones(40)))
+
+
+def test_a_pole_reoptimisation_continues_the_live_model_on_the_new_basis():
+    """``from_live``: the version is the candidate, the fast path the live model re-expressed.
+
+    The candidate's basis holds the live model's poles (and the drifted plant's): the live
+    model is then exactly representable on it, so the fast path must go on predicting what
+    the live model predicts (an untouched twin is the oracle) - not what the candidate
+    predicts - and its coefficients must be the live impulse response's least-squares
+    coefficients on the new basis (a long pulse response and ``lstsq``, independent of the
+    Stein equation the updater solves).
+    """
+    live, untouched = _drifted(), _drifted()
+    slow = _fitted(POLES_SLOW)
+    basis = KautzBasis(np.r_[POLES_SLOW, POLES[0]], dt=DT, delayed=True)
+    assert np.allclose(np.sort(basis.poles.real)[:2], np.sort(POLES))  # holds the live poles
+    candidate = KautzModel(basis, np.r_[slow.model_.coefficients, 0.0])  # the drifted plant
+    mu = live.judge_candidate(candidate, slow.offset_, *live.validation_window(),
+                              kind="step-test", from_live=True)
+    assert mu.accepted and mu.fit_candidate > 99.9 > 90.0 > mu.fit_current
+    assert live.digital_model.version == 2  # the version is the candidate
+    np.testing.assert_array_equal(live.digital_model.model.coefficients,
+                                  candidate.coefficients)
+    pulse = np.zeros(2000)
+    pulse[0] = 1.0
+    h_live = filter_states(untouched.estimator_.basis_, pulse)[:-1] @ untouched.model.coefficients
+    coef, *_ = np.linalg.lstsq(filter_states(basis, pulse)[:-1], h_live, rcond=None)
+    np.testing.assert_allclose(live.model.coefficients, coef, rtol=0, atol=1e-10)
+    assert live.offset == untouched.offset == 3.0
+    u_next = _binary(200, 4)
+    np.testing.assert_allclose(live.predict(u_next), untouched.predict(u_next), rtol=0,
+                               atol=1e-9)
+    # without it, the fast path starts from the candidate: the drifted plant
+    plain = _drifted()
+    plain.judge_candidate(candidate, slow.offset_, *plain.validation_window(), kind="step-test")
+    y_next = _cascade(np.r_[_binary(500, 3), u_next], POLES_SLOW)[500:]
+    np.testing.assert_allclose(plain.predict(u_next), y_next, atol=1e-6)
+    assert np.max(np.abs(live.predict(u_next) - y_next)) > 0.1
+
+
+def test_a_step_test_from_the_live_model_carries_it_over_and_a_measured_one_does_not():
+    """``update_from_step_test(from_live=True)`` judges as before and carries the live model."""
+    a, b, c = _drifted(), _drifted(), _drifted()
+    step = _cascade(np.ones(200), POLES_SLOW)
+    mu_a = a.update_from_step_test(step, u0=0.0, y0=3.0, from_live=True)
+    mu_b = b.judge_candidate(mu_a.candidate, mu_a.offset, *b.validation_window(),
+                             kind="step-test", from_live=True)
+    mu_c = c.update_from_step_test(step, u0=0.0, y0=3.0)  # a measured step test
+    assert mu_a.accepted and mu_b.accepted and mu_c.accepted
+    assert (mu_a.fit_candidate, mu_a.fit_current) == (mu_c.fit_candidate, mu_c.fit_current)
+    np.testing.assert_array_equal(a.predict(np.ones(40)), b.predict(np.ones(40)))
+    np.testing.assert_array_equal(a.digital_model.model.coefficients,
+                                  c.digital_model.model.coefficients)
+    np.testing.assert_array_equal(c.model.coefficients, mu_c.candidate.coefficients)
+    assert not np.allclose(a.model.coefficients, mu_a.candidate.coefficients, atol=1e-3)
 
 
 def test_a_late_judgement_starts_the_winner_from_its_state_now():

@@ -393,7 +393,8 @@ class Optimizer:
         fits a model of the current order to it, starting from the current
         poles, and :meth:`Updater.update_from_step_test` validates the
         candidate on held-out recent measurements before it replaces the
-        running model.
+        running model; the fast path then continues from the live model on the
+        new poles (``from_live``).
 
         Parameters
         ----------
@@ -415,7 +416,8 @@ class Optimizer:
         u0 = updater.input_offset
         y = est.simulate(np.full(n, u0 + 1.0))
         try:
-            return updater.update_from_step_test(y, amplitude=1.0, u0=u0, y0=est.offset_)
+            return updater.update_from_step_test(y, amplitude=1.0, u0=u0, y0=est.offset_,
+                                                 from_live=True)
         except (DataError, ValueError, np.linalg.LinAlgError):
             return None
 

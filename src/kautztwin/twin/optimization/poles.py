@@ -253,12 +253,12 @@ def _judge(updater: Updater, job: PoleJob, model: KautzModel, start: float) -> M
         # from its filter state now
         return updater.judge_candidate(md, offset, job.u_val, job.y_val, job.n_val,
                                        kind="step-test", k_window=job.k_updater,
-                                       k_submitted=job.k, start=start)
+                                       k_submitted=job.k, start=start, from_live=True)
     # too little buffered data: validate on the step test itself (the synchronous rule)
     u_rec, y_rec = step_test_record(job.y, u0=job.u0, y0=job.y0, amplitude=1.0,
                                     burn_in=updater.burn_in)  # the step test as frozen
     return updater.judge_candidate(md, offset, u_rec, y_rec, job.y.size, kind="step-test",
-                                   k_submitted=job.k, start=start)
+                                   k_submitted=job.k, start=start, from_live=True)
 
 
 @dataclass

@@ -138,6 +138,7 @@ class CandidateJudging:
         k_window: int | None = None,
         k_submitted: int | None = None,
         start: float | None = None,
+        from_live: bool = False,
     ) -> ModelUpdate:
         """Judge a candidate built elsewhere with the updater's rules, and adopt it when it wins.
 
@@ -178,6 +179,13 @@ class CandidateJudging:
         start : float, optional
             :func:`time.perf_counter` value at which the attempt started,
             for :attr:`ModelUpdate.elapsed`; now when omitted.
+        from_live : bool, default=False
+            Whether the candidate re-expresses the live model (a pole
+            re-optimisation of its step response): a winner's version is the
+            candidate, but the fast path continues from the live model
+            projected onto the candidate's basis, not from the candidate's
+            coefficients (which fit the step response, not the one-step
+            predictions).
 
         Returns
         -------
@@ -203,7 +211,7 @@ class CandidateJudging:
             raise DataError(f"n_val must be at most len(u) = {uu.size}, got {n_val}")
         u_now = None if k_window is None else self._inputs_since(uu.size, k_window)
         return self._judge(kind, start, model, offset, uu, yy, n_val, u_now=u_now,
-                           k_submitted=k_submitted)
+                           k_submitted=k_submitted, from_live=from_live)
 
     def _inputs_since(self, n_window: int, k_window: int) -> NDArray | None:
         """The input from the first sample of a window that ended at ``k_window`` up to now.
@@ -232,21 +240,23 @@ class CandidateJudging:
     def _judge(
         self, kind: str, start: float, model: KautzModel, offset: float, u: NDArray,
         y: NDArray, n_val: int, *, u_now: NDArray | None = None, k_submitted: int | None = None,
-        band: tuple[float, float] = (math.nan, math.nan),
+        band: tuple[float, float] = (math.nan, math.nan), from_live: bool = False,
     ) -> ModelUpdate:
         """Validate a candidate on the last ``n_val`` samples of ``u, y`` and maybe adopt it.
 
         ``u_now``: the input from the first sample of ``u`` (or a later one,
         when the buffer no longer holds it) up to now, when samples arrived
         after the window (a background attempt); an accepted candidate
-        starts from its filter state at the end of ``u_now``.
+        starts from its filter state at the end of ``u_now``.  ``from_live``:
+        see :meth:`judge_candidate`.
         """
         fit_c, fit_m, state = self._validate(model, offset, u, y, n_val)
         accepted, reason = candidate_verdict(
             fit_c, fit_m, n_val, min_improvement=self.min_improvement,
             min_candidate_fit=self.min_candidate_fit,
         )
-        dm = self._adopt(kind, model, offset, fit_c, u, state, u_now) if accepted else None
+        dm = (self._adopt(kind, model, offset, fit_c, u, state, u_now, from_live)
+              if accepted else None)
         return self._finish(kind, start, accepted, reason, model, offset, fit_c, fit_m, dm,
                             k_submitted=k_submitted, band=band)
 

@@ -129,6 +129,7 @@ class StepTestPath(CandidateJudging):
         amplitude: float = 1.0,
         u0: float | None = None,
         y0: float | None = None,
+        from_live: bool = False,
     ) -> ModelUpdate:
         """Fast path from a step test: a DNN (or pole optimisation) estimate, validated.
 
@@ -146,6 +147,13 @@ class StepTestPath(CandidateJudging):
             Input before the step; the updater's ``input_offset`` when omitted.
         y0 : float, optional
             Output before the step; ``y[0]`` when omitted.
+        from_live : bool, default=False
+            Whether ``y`` is the live model's own step response
+            (:meth:`~kautztwin.twin.Optimizer.retune_model`): an accepted pole
+            re-optimisation then continues the fast path from the live model
+            projected onto the new basis (see
+            :meth:`~kautztwin.twin.update.judging.CandidateJudging.judge_candidate`).
+            A DNN candidate ignores it: the DNN's model is the update.
 
         Returns
         -------
@@ -198,9 +206,10 @@ class StepTestPath(CandidateJudging):
             )
             return self._finish(kind, start, False, f"deferred: {why}", md, offset,
                                 math.nan, math.nan, None, band=band)
+        carry = from_live and kind == "step-test"
         window = self.validation_window()
         if window is not None:
-            return self._judge(kind, start, md, offset, *window, band=band)
+            return self._judge(kind, start, md, offset, *window, band=band, from_live=carry)
         if tt is not None and (
             tt.size != yy.size or not np.allclose(np.diff(tt), self.dt, rtol=1e-6, atol=0)
         ):
@@ -212,4 +221,5 @@ class StepTestPath(CandidateJudging):
         # validate on the step test itself: the twin at rest at u0, the step at the first sample
         u_rec, y_rec = step_test_record(yy, u0=base_u, y0=base_y, amplitude=amp,
                                         burn_in=self.burn_in)
-        return self._judge(kind, start, md, offset, u_rec, y_rec, yy.size, band=band)
+        return self._judge(kind, start, md, offset, u_rec, y_rec, yy.size, band=band,
+                           from_live=carry)
