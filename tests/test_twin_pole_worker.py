@@ -187,3 +187,25 @@ def test_background_twin_judges_the_candidate_later_and_a_resume_replays_it(tmp_
             assert [(e[0] != "pole-retune", e[1], e[3]) for e in late][:1] == [
                 (True, stop_k, submitted)]
             assert state.k == stop_k
+
+
+
+def test_worker_processes_fork_from_a_server_that_imported_the_job_modules():
+    """The forkserver preloads the modules that run jobs in workers (``preload_in_workers``).
+
+    Each worker process used to import the library when it started (about 1 s of CPU,
+    which on the 2-core host fell on a live twin's closed-loop start); now the forkserver
+    imports it once and the workers fork with it.  Checked on the context the workers
+    are started with (the preload list of the standard library's forkserver).
+    """
+    import multiprocessing.forkserver
+
+    import kautztwin.twin.optimization.background  # noqa: F401  (registers itself)
+    import kautztwin.twin.optimization.poles  # noqa: F401  (registers itself)
+    from kautztwin.twin.update.worker import _process_context
+
+    ctx = _process_context()
+    assert ctx.get_start_method() == "forkserver"
+    preload = multiprocessing.forkserver._forkserver._preload_modules
+    assert {"__main__", "kautztwin.twin.update.worker", "kautztwin.twin.optimization.poles",
+            "kautztwin.twin.optimization.background"} <= set(preload)

@@ -53,10 +53,12 @@ from ...approx.model import KautzModel
 from ...exceptions import DataError, KautzTwinError
 from ..prediction import MPCSettings
 from ..prediction.controller import _prepare_controller, _PreparedController
-from ..update.worker import WORKER_KINDS, single_worker
+from ..update.worker import WORKER_KINDS, preload_in_workers, single_worker
 from .optimizer import ControllerTuning, EstimatorRetraining
 
 __all__ = ["OptimizationJob", "OptimizationWorker", "TuningContext"]
+
+preload_in_workers(__name__)  # its worker processes fork with this module loaded
 
 _logger = logging.getLogger(__name__)
 

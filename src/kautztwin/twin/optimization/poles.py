@@ -57,9 +57,11 @@ from ...exceptions import DataError
 from ..digital import discretize_model
 from ..update import ModelUpdate, Updater
 from ..update.steptest import step_test_record
-from ..update.worker import WORKER_KINDS, _ready, single_worker
+from ..update.worker import WORKER_KINDS, _ready, preload_in_workers, single_worker
 
 __all__ = ["PoleJob", "PoleWorker", "judge_pole_candidate", "pole_candidate", "pole_job"]
+
+preload_in_workers(__name__)  # its worker processes fork with this module loaded
 
 
 @dataclass(frozen=True, eq=False)

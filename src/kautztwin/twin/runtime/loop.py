@@ -355,15 +355,18 @@ class DigitalTwin:
                                        on_estimator=self._set_estimator)
         self._replay: Replay = rec.open({"twin": cfg.to_dict(), "plant": self.plant.name}, resume)
         self.run_id = rec.run_id
+        # process workers start before the plant's samples flow: the first one waits for the
+        # forkserver to import the library (about 1 s of CPU); during a live plant's
+        # identification that stalled the loop, which thinned the excitation the plant saw
+        if self.background and cfg.retune:
+            self._versions.prestart_poles(str(cfg.updater.get("worker", "thread")))
+        if self.background and cfg.controlled:
+            self._versions.worker.prestart()  # a process worker's child: ready by the first tuning
         self._reading = self.plant.reset()
         self._t_offset = 0.0
         self._replayable = not getattr(self.plant, "connected", False)
         if self._replay.rows is not None:
             self._versions.resumed()  # where the stored run judged its live pole retunings
-        if self.background and cfg.retune:
-            self._versions.prestart_poles(str(cfg.updater.get("worker", "thread")))
-        if self.background and cfg.controlled:
-            self._versions.worker.prestart()  # a process worker's child: ready by the first tuning
         if self._replay.rows is not None and not self._replayable:
             self._k_cl_stored = self._stored_closed_loop()
         self._started = True
