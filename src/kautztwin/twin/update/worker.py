@@ -157,9 +157,12 @@ def preload_in_workers(module: str) -> None:
     2-core host at the closed loop's start, where a live twin's first
     seconds need the CPU (measured against the OPC UA plant at x10: the
     workers' start-up took 2.6 s of CPU there, and the loop decided a third
-    less often in its first 500 closed-loop samples than later).  The modules that run jobs in a
-    worker register themselves at import; a forkserver already running keeps
-    what it preloaded.
+    less often in its first 500 closed-loop samples than later).  The first
+    worker to start now waits for the forkserver's import (about 1 s), so
+    :meth:`~kautztwin.twin.DigitalTwin.start` starts its workers before the
+    plant's samples flow.  The modules that run jobs in a worker register
+    themselves at import; a forkserver already running keeps what it
+    preloaded.
 
     Parameters
     ----------
