@@ -711,8 +711,8 @@ class Updater(StepTestPath, AccuratePath):
         re-optimisation of its step response), so the fast path continues from
         the live model itself, projected onto the new basis (:meth:`_carry_over`).
         """
-        live = self.estimator_.model_ if from_live else None
-        live_offset = self.estimator_.offset_
+        est = self.estimator_
+        live = (est.model_, est.offset_) if from_live else None  # before the reseed
         dm = self.digital_model.with_update(model, kind, fit)
         self.digital_model = dm
         self._core_n = model.n_functions
@@ -721,8 +721,8 @@ class Updater(StepTestPath, AccuratePath):
             v = (u if u_now is None else u_now) - self.input_offset
             state = filter_states(wide.basis, v)[-1]
         if live is not None:
-            wide, offset = self._carry_over(live, wide.basis), live_offset
-        self.estimator_.reseed(wide, offset=offset, state=state, delta=self.delta)
+            wide, offset = self._carry_over(live[0], wide.basis), live[1]
+        est.reseed(wide, offset=offset, state=state, delta=self.delta)
         self._theta_frozen = self.estimator_.parameters_
         self.monitor.clear_window()
         self._model_k = self._k
