@@ -413,8 +413,11 @@ def _last(twin, prefix):
 
 
 def _same_state(ctl, reference):
-    for name in ("_xv", "_xv_prev", "_xd"):
-        np.testing.assert_array_equal(getattr(ctl, name), getattr(reference, name), err_msg=name)
+    f, ref = ctl._filter, reference._filter
+    for name in ("xv", "xv_prev", "xd", "x0"):
+        np.testing.assert_array_equal(getattr(f, name), getattr(ref, name), err_msg=name)
+    assert f.nb == ref.nb
+    np.testing.assert_array_equal(f.buf[:f.nb], ref.buf[:ref.nb])
 
 
 def _rebuilt(twin, model, settings):

@@ -35,16 +35,85 @@ __all__ = ["MAX_DELAY", "MPCController", "TwinError"]
 MAX_DELAY = 256
 
 
-def _filter_states(
-    A: NDArray, B: NDArray, w: NDArray, n_keep: int = 2
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Last two states ``x(n), x(n-1)`` of ``x(k+1) = A x(k) + B w(k)`` from rest."""
-    x = np.zeros(A.shape[0])
-    prev = x.copy()
-    for wk in w.tolist():
-        prev = x
-        x = A @ x + B * wk
-    return x, prev
+class _FilterState:
+    r"""The controller's filter states ``x_v, x_d`` of ``x(k+1) = A x(k) + B w(k)``, from rest.
+
+    A state is advanced one sample at a time, except at every
+    :data:`MAX_DELAY`-th input counted from the start of the history (a
+    block boundary): there it is the block map from the last boundary,
+
+    .. math::
+
+        x(jL) = A^L x((j-1)L) + \sum_{i=0}^{L-1} A^{L-1-i} B\, w((j-1)L + i),
+
+    the predictor's formula of :meth:`MPCController.solve`.  The states are
+    thus a fixed function of the history, whatever sample they were built at:
+    a controller built on the first ``n`` inputs and advanced over the rest
+    holds the states of one built on the whole history, bit for bit, while a
+    build costs one product per block and at most ``L`` single steps instead
+    of a Python step per input of the history.  Both ways agree with the
+    plain recursion to rounding (the block map is the same sum).
+    """
+
+    __slots__ = ("A", "B", "PL", "M", "xv", "xv_prev", "xd", "x0", "buf", "nb")
+
+    def __init__(self, A: NDArray, B: NDArray, PL: NDArray, M: NDArray) -> None:
+        n = A.shape[0]
+        self.A, self.B, self.PL, self.M = A, B, PL, M
+        self.xv, self.xv_prev, self.xd = np.zeros(n), np.zeros(n), np.zeros(n)
+        self.x0 = np.zeros((n, 2))  # [x_v, x_d] at the last block boundary
+        self.buf = np.empty((MAX_DELAY, 2))  # [v - offset, d] since then
+        self.nb = 0
+
+    @classmethod
+    def from_history(
+        cls, A: NDArray, B: NDArray, PL: NDArray, M: NDArray, wv: NDArray, wd: NDArray
+    ) -> _FilterState:
+        """The states after the inputs ``wv`` (command less the offset) and ``wd`` (dither)."""
+        f = cls(A, B, PL, M)
+        n = int(wv.size)
+        first = MAX_DELAY * ((n - 1) // MAX_DELAY) if n else 0  # last boundary before input n
+        w = np.stack([wv, wd], axis=1)
+        for j in range(0, first, MAX_DELAY):
+            f.buf[:] = w[j:j + MAX_DELAY]  # the buffer the online advance fills
+            f._close_block()
+        for v, d in w[first:].tolist():
+            f.advance(v, d)
+        return f
+
+    def copy(self) -> _FilterState:
+        """An independent copy (the matrices are shared: they are never written)."""
+        f = _FilterState(self.A, self.B, self.PL, self.M)
+        f.xv, f.xv_prev, f.xd = self.xv, self.xv_prev, self.xd
+        f.x0, f.buf, f.nb = self.x0.copy(), self.buf.copy(), self.nb
+        return f
+
+    def advance(self, wv: float, wd: float) -> None:
+        """One input: ``wv`` the command less the input offset, ``wd`` the dither."""
+        i = self.nb
+        self.buf[i, 0] = wv
+        self.buf[i, 1] = wd
+        self.xv_prev = self.xv
+        if i + 1 == MAX_DELAY:
+            self._close_block()
+        else:
+            self.xv = self.A @ self.xv + self.B * wv
+            self.xd = self.A @ self.xd + self.B * wd
+            self.nb = i + 1
+
+    def revise_last(self, delta: float) -> None:
+        """The last input's command was ``delta`` larger than advanced."""
+        self.xv = self.xv + self.B * delta
+        if self.nb:  # at a boundary the closed block already holds the input
+            self.buf[self.nb - 1, 0] += delta
+        else:
+            self.x0[:, 0] = self.xv
+
+    def _close_block(self) -> None:
+        x = self.PL @ self.x0 + self.M @ self.buf
+        self.x0 = x
+        self.xv, self.xd = x[:, 0].copy(), x[:, 1].copy()
+        self.nb = 0
 
 
 def _delay_maps(A: NDArray, B: NDArray) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -67,12 +136,27 @@ class _PreparedController:
     A: NDArray[np.float64]
     B: NDArray[np.float64]
     c: NDArray[np.float64]
-    xv: NDArray[np.float64]
-    xv_prev: NDArray[np.float64]
-    xd: NDArray[np.float64]
+    powers: NDArray[np.float64]
+    AB: NDArray[np.float64]
+    filter: _FilterState
     n: int
     v_tail: NDArray[np.float64]
     d_tail: NDArray[np.float64]
+
+    @property
+    def xv(self) -> NDArray[np.float64]:
+        """Command-driven filter state ``x_v(n)``."""
+        return self.filter.xv
+
+    @property
+    def xv_prev(self) -> NDArray[np.float64]:
+        """``x_v(n - 1)``."""
+        return self.filter.xv_prev
+
+    @property
+    def xd(self) -> NDArray[np.float64]:
+        """Dither-driven filter state ``x_d(n)``."""
+        return self.filter.xd
 
 
 def _prepare_controller(
@@ -85,12 +169,12 @@ def _prepare_controller(
     B = np.array(model.basis.B)
     c = np.array(model.coefficients)
     v_raw = np.asarray(v_history, dtype=float)
-    v = v_raw - input_offset
     d = np.asarray(d_history, dtype=float)
-    xv, xv_prev = _filter_states(A, B, v)
-    xd, _ = _filter_states(A, B, d)
-    return _PreparedController(model, settings, problem, A, B, c, xv, xv_prev, xd, int(v.size),
-                               v_raw[-MAX_DELAY:].copy(), d[-MAX_DELAY:].copy())
+    powers, AB = _delay_maps(A, B)
+    M = np.ascontiguousarray(AB[::-1].T)  # column i: A^(L-1-i) B
+    filt = _FilterState.from_history(A, B, powers[MAX_DELAY], M, v_raw - input_offset, d)
+    return _PreparedController(model, settings, problem, A, B, c, powers, AB, filt,
+                               int(v_raw.size), v_raw[-MAX_DELAY:].copy(), d[-MAX_DELAY:].copy())
 
 
 class MPCController:
@@ -185,8 +269,8 @@ class MPCController:
     ) -> None:
         """Run on a prepared controller, advanced over the samples applied since it was prepared.
 
-        The advance repeats the operations of :func:`_filter_states`, so the
-        states equal those of a :meth:`rebuild` on the whole history, bit for bit.
+        The advance is the one of :class:`_FilterState`, so the states equal
+        those of a :meth:`rebuild` on the whole history, bit for bit.
         """
         if not self._issued and prepared.n:  # the first build: the inputs sent before it
             v_tail, d_tail = prepared.v_tail, prepared.d_tail
@@ -194,9 +278,9 @@ class MPCController:
         self.problem = prepared.problem
         self.model = prepared.model
         self.settings = prepared.settings
-        self._A, self._B, self._c = prepared.A, prepared.B, prepared.c
-        self._powers, self._AB = _delay_maps(prepared.A, prepared.B)
-        self._xv, self._xv_prev, self._xd = prepared.xv, prepared.xv_prev, prepared.xd
+        self._c = prepared.c
+        self._powers, self._AB = prepared.powers, prepared.AB
+        self._filter = prepared.filter.copy()  # a prepared controller may be installed again
         for v, d in zip(np.asarray(v_since, dtype=float).tolist(),
                         np.asarray(d_since, dtype=float).tolist(), strict=True):
             self._propagate(v, d)  # inputs already issued: not issued again
@@ -225,7 +309,8 @@ class MPCController:
         """
         if self.problem is None:
             raise TwinError("the controller has no model yet; call rebuild() first")
-        xv, xv_prev, xd = self._xv, self._xv_prev, self._xd
+        f = self._filter
+        xv, xv_prev, xd = f.xv, f.xv_prev, f.xd
         y_eff = float(y)
         d = min(int(delay), len(self._issued)) if delay else 0
         if d > 0:  # x(k+d) = A^d x(k) + sum_j A^(d-1-j) B w(k-d+j), one product each
@@ -252,9 +337,7 @@ class MPCController:
         self._issued.append((float(v), float(d)))
 
     def _propagate(self, v: float, d: float) -> None:
-        self._xv_prev = self._xv
-        self._xv = self._A @ self._xv + self._B * (float(v) - self.input_offset)
-        self._xd = self._A @ self._xd + self._B * float(d)
+        self._filter.advance(float(v) - self.input_offset, float(d))
 
     def revise_last_input(self, delta: float) -> None:
         """The plant applied ``delta`` more than the last :meth:`advance` said (a live plant).
@@ -264,8 +347,8 @@ class MPCController:
         delta : float
             Applied input minus the input of the last :meth:`advance` (``v + d``).
         """
-        if math.isfinite(delta) and delta != 0.0 and getattr(self, "_xv", None) is not None:
-            self._xv = self._xv + self._B * float(delta)
+        if math.isfinite(delta) and delta != 0.0 and getattr(self, "_filter", None) is not None:
+            self._filter.revise_last(float(delta))
 
     def __repr__(self) -> str:
         n = None if self.model is None else self.model.n_functions
