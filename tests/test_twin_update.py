@@ -189,6 +189,44 @@ def test_output_error_identification_recovers_the_poles():
     np.testing.assert_allclose(fit.predict(u), y, atol=1e-5)
 
 
+def test_output_error_with_the_initial_state_estimated_fits_a_window_after_a_change():
+    """A window that starts where the plant changed: the burn-in ran on other dynamics.
+
+    Oracle: after the change the plant is the slow cascade started from the state the
+    fast one left; that state's free response lies in the span of the new basis'
+    impulse responses, so with the initial state estimated the fit is exact.
+    """
+    u = _binary(900, seed=5)
+    change = 600
+    P = np.where(np.arange(u.size)[:, None] < change, POLES, POLES_SLOW)
+    y, _ = _cascade(u, P)
+    kw = dict(dt=DT, input_offset=0.0, burn_in=change)
+    free = identify_output_error(u, y, [-3.0, -8.0], initial_state="estimate", **kw)
+    np.testing.assert_allclose(np.sort(free.model.poles.real), np.sort(POLES_SLOW), rtol=1e-6)
+    assert free.fit_percent > 99.999 and free.offset == pytest.approx(3.0, abs=1e-5)
+    # the model predicts from its filter state: exact once the initial state has died out
+    # (0.951^200 = 5e-5 of it remains)
+    np.testing.assert_allclose(free.predict(u)[change + 200:], y[change + 200:], atol=2e-4)
+    rest = identify_output_error(u, y, [-3.0, -8.0], **kw)  # from the burn-in's state
+    assert rest.fit_percent < 99.9
+    assert np.max(np.abs(np.sort(rest.model.poles.real) - np.sort(POLES_SLOW))) > 1e-3
+    # without a change both give the plant exactly
+    y_lti, _ = _cascade(u, POLES_SLOW)
+    both = [identify_output_error(u, y_lti, [-3.0, -8.0], initial_state=e, **kw)
+            for e in ("zero", "estimate")]
+    for fit in both:
+        np.testing.assert_allclose(np.sort(fit.model.poles.real), np.sort(POLES_SLOW), rtol=1e-6)
+
+
+def test_output_error_initial_state_needs_room_for_its_parameters():
+    u = _binary(40, seed=1)
+    y, _ = _cascade(u, POLES)
+    with pytest.raises(DataError, match="too few to fit 5 parameters"):
+        identify_output_error(u, y, [-3.0, -8.0], dt=DT, burn_in=30, initial_state="estimate")
+    with pytest.raises(DataError, match="initial_state"):
+        identify_output_error(u, y, [-3.0, -8.0], dt=DT, initial_state="free")
+
+
 # --------------------------------------------------------------------------- monitor
 def test_sync_monitor_flags_a_drift_and_the_recovery():
     mon = SyncMonitor(window=40, stride=10, threshold=95.0, n_consecutive=3)

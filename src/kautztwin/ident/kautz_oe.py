@@ -25,7 +25,7 @@ import scipy.optimize
 import scipy.signal
 from numpy.typing import ArrayLike, NDArray
 
-from .._validation import check_int, check_number, check_positive
+from .._validation import check_choice, check_int, check_number, check_positive
 from ..approx.model import KautzModel
 from ..basis import KautzBasis
 from ..basis._blocks import PAIR, REAL, parse_poles
@@ -142,7 +142,7 @@ class _OEProblem:
 
     def __init__(
         self, kinds: tuple[str, ...], u: NDArray, y: NDArray, dt: float, burn_in: int,
-        fit_offset: bool,
+        fit_offset: bool, initial_state: bool = False,
     ) -> None:
         self.kinds = kinds
         self.u = u
@@ -152,7 +152,22 @@ class _OEProblem:
         self.use = use
         self.y = y[use]
         self.fit_offset = fit_offset
+        self.burn_in = burn_in
+        self.initial_state = initial_state
         self.n_eval = 0
+
+    def regressors(self, basis: KautzBasis) -> NDArray:
+        """Columns ``[x_f, (free response), (1)]`` on the used samples; ``c`` first."""
+        X = filter_states(basis, self.u)[:-1]
+        cols = [X]
+        if self.initial_state:  # the undelayed sequences A^(k - b) B from the first fitted k = b
+            m = self.u.size - self.burn_in
+            free = np.zeros_like(X)
+            free[self.burn_in:] = basis.evaluate(np.arange(1, m + 1) * basis.dt).T
+            cols.append(free)
+        if self.fit_offset:
+            cols.append(np.ones((X.shape[0], 1)))
+        return np.hstack(cols)[self.use] if len(cols) > 1 else X[self.use]
 
     def basis(self, x: NDArray) -> KautzBasis:
         params = np.empty_like(x)
@@ -171,9 +186,7 @@ class _OEProblem:
     def solve(self, x: NDArray) -> tuple[KautzBasis, NDArray, NDArray]:
         self.n_eval += 1
         basis = self.basis(x)
-        X = filter_states(basis, self.u)[:-1][self.use]
-        if self.fit_offset:
-            X = np.hstack([X, np.ones((X.shape[0], 1))])
+        X = self.regressors(basis)
         theta, *_ = np.linalg.lstsq(X, self.y, rcond=None)
         return basis, theta, self.y - X @ theta
 
@@ -216,6 +229,7 @@ def identify_output_error(
     min_rate: float | None = None,
     max_iter: int = 50,
     tol: float = 1e-8,
+    initial_state: str = "zero",
 ) -> OutputErrorFit:
     r"""Output-error identification of a Kautz model from input/output data (variable projection).
 
@@ -256,6 +270,18 @@ def identify_output_error(
         Iteration budget per start.
     tol : float, default=1e-8
         ``ftol``/``xtol``/``gtol`` of the solver.
+    initial_state : {'zero', 'estimate'}, default='zero'
+        ``'zero'``: the filters start from rest at the first sample (the
+        state at sample ``burn_in`` is their response to the inputs before).
+        ``'estimate'`` also fits the free response of an unknown state at
+        sample ``burn_in``: for given poles it lies in the span of the
+        undelayed basis sequences :math:`A^{k-b} B` started there, so it adds
+        ``n_functions`` linear nuisance parameters (as
+        :func:`~kautztwin.ident.identify_mimo` does from the first sample).
+        For a window that starts where the plant's state is not the model's
+        response to the earlier inputs: after a change of the plant, the
+        burn-in ran on other dynamics.  ``fit_percent`` includes that
+        response; the returned model predicts from its filter state, as always.
 
     Returns
     -------
@@ -314,7 +340,9 @@ def identify_output_error(
             starts.append(((REAL,) * m, np.sort(rates)))
     else:
         starts = [parse_poles(init, 0.0)]
-    n_par = starts[0][1].size + int(bool(fit_offset))
+    initial_state = check_choice(initial_state, "initial_state", ("zero", "estimate"))
+    estimate_x0 = initial_state == "estimate"
+    n_par = starts[0][1].size * (2 if estimate_x0 else 1) + int(bool(fit_offset))
     usable = int(np.isfinite(y[burn_in:]).sum())
     if usable < 2 * n_par + 2:
         raise DataError(
@@ -323,7 +351,7 @@ def identify_output_error(
     best = None
     n_eval = 0
     for kinds, params in starts:
-        prob = _OEProblem(kinds, u, y, dt, burn_in, bool(fit_offset))
+        prob = _OEProblem(kinds, u, y, dt, burn_in, bool(fit_offset), estimate_x0)
         lo_b, hi_b = _oe_bounds(kinds, n, dt, rate_lo)
         x0 = np.clip(_oe_x(kinds, params), lo_b + 1e-6 * (hi_b - lo_b), hi_b - 1e-6 * (hi_b - lo_b))
         sol = scipy.optimize.least_squares(
@@ -336,9 +364,12 @@ def identify_output_error(
     sol, prob = best
     basis, theta, _ = prob.solve(sol.x)
     n_f = basis.n_functions
-    offset = float(theta[n_f]) if fit_offset else 0.0
+    offset = float(theta[-1]) if fit_offset else 0.0
     model = KautzModel(basis, theta[:n_f])
-    yhat = (filter_states(basis, u)[:-1] @ theta[:n_f] + offset)[prob.use]
+    if estimate_x0:
+        yhat = prob.regressors(basis) @ theta
+    else:
+        yhat = (filter_states(basis, u)[:-1] @ theta[:n_f] + offset)[prob.use]
     return OutputErrorFit(
         model=model, offset=offset, input_offset=u0, fit_percent=fit_percent_or_nan(prob.y, yhat),
         n_evaluations=n_eval,

@@ -45,6 +45,10 @@ from ...basis import KautzBasis
 from ...ident.kautz_oe import OutputErrorFit, identify_output_error
 
 
+#: a window starts where the plant may have changed: its state there is estimated
+_INITIAL_STATE = "estimate"
+
+
 @dataclass(frozen=True, eq=False)
 class _ReidJob:
     """Frozen inputs of one re-identification attempt (copied when it is prepared).
@@ -90,7 +94,7 @@ def _fit_window(job: _ReidJob, cancel: threading.Event | None = None) -> _ReidOu
         fit = identify_output_error(
             job.u[: job.n_est], job.y[: job.n_est], _scaled_poles(job.poles, scale), dt=job.dt,
             burn_in=job.w0, input_offset=job.input_offset, min_rate=job.min_rate,
-            max_iter=job.max_iter,
+            max_iter=job.max_iter, initial_state=_INITIAL_STATE,
         )
         if best is None or fit.fit_percent > best.fit_percent:
             best = fit
