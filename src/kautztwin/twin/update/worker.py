@@ -44,7 +44,6 @@ from ...approx.model import KautzModel
 from ...basis import KautzBasis
 from ...ident.kautz_oe import OutputErrorFit, identify_output_error
 
-
 #: a window starts where the plant may have changed: its state there is estimated
 _INITIAL_STATE = "estimate"
 
