@@ -83,7 +83,10 @@ class Updater(StepTestPath, AccuratePath):
        (:func:`identify_output_error`, from the current poles and two scaled
        copies) on the samples since the change (at most ``reid_samples``,
        the filters settled on ``burn_in`` samples of input history before
-       them) except the final ``validation_fraction``.  A candidate replaces
+       them, and the free response of the plant's state at the window's
+       start fitted as well: ``initial_state='estimate'``, since the burn-in
+       ran on the plant's dynamics from before the change) except the final
+       ``validation_fraction``.  A candidate replaces
        the current model only if it predicts those held-out samples better
        (fit percent higher by more than ``min_improvement``) *and* well
        enough in absolute terms (fit percent at least ``min_candidate_fit``).
