@@ -27,12 +27,11 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import argparse  # noqa: E402 - the thread variables must be set before numpy loads
 import statistics  # noqa: E402
-import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 from typing import Any  # noqa: E402
 
 import numpy as np  # noqa: E402
-from _common import HERE, benchmark_result, machine_info, write_json  # noqa: E402
+from _common import HERE, benchmark_result, machine_info, timed, write_json  # noqa: E402
 
 import kautztwin as kt  # noqa: E402
 from kautztwin.twin.prediction import MPCSettings  # noqa: E402
@@ -58,15 +57,6 @@ def _recursion(A: np.ndarray, B: np.ndarray, w: np.ndarray) -> tuple[np.ndarray,
     for wk in w.tolist():
         prev, x = x, A @ x + B * wk
     return x, prev
-
-
-def _median_time(fn: Any, repeats: int) -> float:
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
@@ -115,9 +105,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         states(), recursion(), build()  # warm-up
         t_states, t_rec, t_build = [], [], []
         for _ in range(repeats):  # alternate, so that a burst of load hits all alike
-            t_states.append(_median_time(states, 1))
-            t_rec.append(_median_time(recursion, 1))
-            t_build.append(_median_time(build, 1))
+            t_states.append(timed(states)[1])
+            t_rec.append(timed(recursion)[1])
+            t_build.append(timed(build)[1])
         f = states()
         (xv, xv_prev), (xd, _) = recursion()
         scale = np.abs(np.concatenate([xv, xd])).max()
