@@ -387,12 +387,11 @@ def test_end_to_end_sync_fit_after_each_recovery_window(tmp_path):
 
     In the slow set: the windows start at the closed-loop start, once the twin has caught
     up with the samples queued while it identified (as the report's do).  On the quiet
-    2-core machine it passed 29 of 32 runs (a pole re-optimisation continuing the fast
-    path from the live model; the worker processes started before the plant's samples
-    flow): before the first drift 32 of 32 runs >= 95 %, after the recovery windows 61
-    of 64 segments; the misses are a recovery that took longer than the 15 s window and
-    two dips after a controller rebuild (docs/service.md has the figures).  ``-s``
-    prints them.
+    2-core machine it passed 58 of 68 runs with the re-identification's initial state
+    estimated and the controller's states built in blocks (16 of 24 interleaved runs
+    without the former): the misses are marginal windows (94.16 to 94.92 %, one 92.35 %),
+    8 after a recovery window and 2 in the closed loop's first seconds (docs/service.md
+    has the figures).  ``-s`` prints them.
     """
     metrics, segments, figures = _end_to_end_run(tmp_path)
     assert all(segments) and all(min(f) >= 95.0 for f in segments), figures
