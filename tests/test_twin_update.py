@@ -12,6 +12,7 @@ import scipy.signal
 
 import kautztwin as kt
 from kautztwin.exceptions import DataError, DimensionError, NotFittedError
+from kautztwin.ident.kautz_oe import filter_states
 from kautztwin.twin import DigitalModel, MemoryHistory, SampleFlag
 from kautztwin.twin.physical import HydraulicPlant, run_open_loop
 from kautztwin.twin.update import (
@@ -178,6 +179,27 @@ def test_discretize_model_matches_scipy_zoh():
     np.testing.assert_allclose(est.simulate(u), y_ref[:, 0], atol=1e-10)
     with pytest.raises(DataError, match="undelayed"):
         discretize_model(kt.KautzModel(kt.KautzBasis([0.5], dt=DT), [1.0]), DT)
+
+
+@pytest.mark.parametrize("n", [0, 1, 2, 97, 600, 1031])
+def test_filter_states_equal_the_state_space_recursion(n):
+    # the FFT convolution (the input's spectrum kept for many bases) against scipy's dlsim
+    cont = kt.KautzBasis([-2.0, complex(-1.0, 3.0), complex(-1.0, -3.0)])
+    basis = discretize_model(kt.KautzModel(cont, np.ones(3)), DT).basis  # delayed, discrete
+    A, B = np.array(basis.A), np.array(basis.B)[:, None]
+    u = _binary(n, seed=3) if n else np.zeros(0)
+    x0 = np.array([0.3, -0.2, 0.5])
+    for start in (None, x0):
+        X = filter_states(basis, u, start)
+        assert X.shape == (n + 1, 3)
+        if n:
+            _, _, ref = scipy.signal.dlsim((A, B, np.eye(3), np.zeros((3, 1)), DT), u,
+                                           x0=np.zeros(3) if start is None else start)
+            np.testing.assert_allclose(X[:-1], ref, rtol=0, atol=1e-12 * np.abs(ref).max())
+        if n:  # the last row: the state after the input
+            np.testing.assert_allclose(X[-1], A @ X[-2] + B[:, 0] * u[-1], atol=1e-12)
+        else:  # no input: the initial state
+            np.testing.assert_array_equal(X[0], np.zeros(3) if start is None else start)
 
 
 def test_output_error_identification_recovers_the_poles():

@@ -21,8 +21,8 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.fft
 import scipy.optimize
-import scipy.signal
 from numpy.typing import ArrayLike, NDArray
 
 from .._validation import check_choice, check_int, check_number, check_positive
@@ -61,10 +61,29 @@ def filter_states(
     n = u.size
     k = np.arange(n + 1)
     F = basis.evaluate(k * basis.dt)  # delayed: F[:, 0] = 0, F[:, k] = A^{k-1} B
-    X = scipy.signal.fftconvolve(F, u[None, :], axes=1)[:, : n + 1]
+    X = _InputSpectrum(u).convolve(F)
     if x0 is not None and np.any(x0):
         X += discrete_functions(np.asarray(basis.A)[None], np.asarray(x0)[None], k)[0]
     return X.T
+
+
+class _InputSpectrum:
+    """An input's spectrum, kept to convolve many sequences with it (one FFT of ``u``).
+
+    An output-error fit evaluates hundreds of bases on one input: the input's
+    FFT is taken once here, each evaluation then costs the FFT of the basis
+    sequences and one inverse FFT.
+    """
+
+    def __init__(self, u: NDArray) -> None:
+        self.n = u.size
+        self.size = scipy.fft.next_fast_len(max(2 * self.n, 1), real=True)  # no wrap-around
+        self.spectrum = scipy.fft.rfft(u, self.size)
+
+    def convolve(self, F: NDArray) -> NDArray[np.float64]:
+        """Rows of ``F`` (``(m, n + 1)``) convolved with the input: its first ``n + 1`` samples."""
+        Y = scipy.fft.rfft(F, self.size, axis=1) * self.spectrum
+        return scipy.fft.irfft(Y, self.size, axis=1)[:, : self.n + 1]
 
 
 def continuous_poles(basis: KautzBasis) -> NDArray[np.complex128]:
@@ -147,6 +166,8 @@ class _OEProblem:
         self.kinds = kinds
         self.u = u
         self.dt = dt
+        self._grid = np.arange(u.size + 1)
+        self._spectrum = _InputSpectrum(u)
         use = np.isfinite(y)
         use[:burn_in] = False
         self.use = use
@@ -157,13 +178,19 @@ class _OEProblem:
         self.n_eval = 0
 
     def regressors(self, basis: KautzBasis) -> NDArray:
-        """Columns ``[x_f, (free response), (1)]`` on the used samples; ``c`` first."""
-        X = filter_states(basis, self.u)[:-1]
+        """Columns ``[x_f, (free response), (1)]`` on the used samples; ``c`` first.
+
+        The basis sequences are evaluated once: the filter states are their
+        convolution with the input (:func:`filter_states`, with the input's
+        spectrum kept), the free response their values from the burn-in on.
+        """
+        F = basis.evaluate(self._grid * basis.dt)  # delayed: F[:, k] = A^{k-1} B
+        X = self._spectrum.convolve(F)[:, :-1].T
         cols = [X]
         if self.initial_state:  # the undelayed sequences A^(k - b) B from the first fitted k = b
             m = self.u.size - self.burn_in
             free = np.zeros_like(X)
-            free[self.burn_in:] = basis.evaluate(np.arange(1, m + 1) * basis.dt).T
+            free[self.burn_in:] = F[:, 1: m + 1].T
             cols.append(free)
         if self.fit_offset:
             cols.append(np.ones((X.shape[0], 1)))

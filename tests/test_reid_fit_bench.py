@@ -1,0 +1,36 @@
+"""Smoke test of benchmarks/bench_reid_fit.py in --quick mode (issue #11).
+
+The script must run, time every captured re-identification window with both regressor
+implementations, and both must give the same candidate to the fit's resolution: the
+held-out predictions within 1e-4 of the output's spread (the output-error cost is flat
+along some pole directions, so rounding differences move the poles by up to about 1e-4;
+a wrong regressor moves the prediction by whole percent).  Timings are not asserted.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+SCRIPT = ROOT / "benchmarks" / "bench_reid_fit.py"
+
+
+def test_quick_run_times_every_window_and_the_candidates_agree(tmp_path):
+    out = tmp_path / "reid_fit.json"
+    env = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"}
+    proc = subprocess.run([sys.executable, str(SCRIPT), "--quick", "--out", str(out)], cwd=ROOT,
+                          env=env, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    result = json.loads(out.read_text())
+    rows = result["rows"]
+    assert len(rows) == result["summary"]["fits"] == 4
+    for r in rows:
+        assert r["held_out_rel_diff"] < 1e-4
+        assert abs(r["fit_current"] - r["fit_baseline"]) < 1e-3
+        assert r["current_s"] > 0 and r["baseline_s"] > 0
+        assert len(r["repeats_current_s"]) == result["settings"]["repeats"]
+    assert "speed-up" in proc.stdout and "wrote" in proc.stdout
