@@ -144,18 +144,6 @@ def test_rls_dropout_only_advances_the_filter():
         est.update(math.inf, 1.0)
 
 
-def test_rls_update_costs_microseconds():
-    est = RecursiveKautzEstimator(np.exp(np.array([-1.0, -2.0, -4.0, -8.0]) * DT), dt=DT,
-                                  forgetting=0.98).reset()
-    u = _binary(5000, seed=3)
-    start = time.perf_counter()
-    for uk in u.tolist():
-        est.update(uk, uk)
-    per_update = (time.perf_counter() - start) / u.size
-    print(f"\nRLS update, N=4 functions + offset: {per_update * 1e6:.1f} us per sample")
-    assert per_update < 1e-3
-
-
 def test_rls_parameter_errors():
     with pytest.raises(NotFittedError):
         _ = RecursiveKautzEstimator(POLES, dt=DT).coef_
@@ -712,7 +700,6 @@ def test_updating_twin_stays_synchronised_through_a_40_percent_pole_drift():
     assert f_static[t_end <= EVENTS[0]].min() >= 95.0  # both twins start synchronised
     assert f_static[after_drift].mean() < 80.0  # ... and the static one falls clearly below
     assert f_static[outside & (t_end > EVENTS[1])].max() < 50.0
-    assert np.nanmedian(fast_s) < 5e-3  # the fast path costs well under 5 ms per sample
     assert twin.events and twin.events[0].kind == "desync"
     assert not static.model_updates and static.digital_model.version == 1
 

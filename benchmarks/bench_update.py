@@ -1,14 +1,22 @@
-"""Benchmark: one re-identification fit of the twin (the accurate path's computation).
+"""Benchmark: the twin's update module, per sample (fast path) and per re-identification fit.
 
-A live twin's re-identification runs in a worker while the plant goes on: at 10x real
-time, every 100 ms of fit is 50 samples (1 s of plant time) before the candidate can be
-judged, so the fit's wall time stretches the recovery after a drift.  The fit is
-:func:`kautztwin.ident.identify_output_error` from three starts
+**Fast path.**  Every sample the update module runs one recursive least-squares update of
+the Kautz coefficients (:class:`kautztwin.twin.update.RecursiveKautzEstimator`, four
+functions and the offset) and, around it, the monitor and the bookkeeping
+(:meth:`kautztwin.twin.update.Updater.step`, re-identification off).  The baseline, in the
+same run, is what the recursion replaces: the weighted least-squares fit of the same
+coefficients over the forgetting factor's memory (``3 / (1 - forgetting)`` samples, the
+weights ``forgetting^age``) recomputed at every sample.  The recursion's coefficients are
+compared with that fit's at the last sample.
+
+**Re-identification fit.**  A live twin's re-identification runs in a worker while the
+plant goes on: at 10x real time, every 100 ms of fit is 50 samples (1 s of plant time)
+before the candidate can be judged, so the fit's wall time stretches the recovery after a
+drift.  The fit is :func:`kautztwin.ident.identify_output_error` from three starts
 (``kautztwin.twin.update.worker._fit_window``), a variable projection whose every
 evaluation builds the regressors of one basis: the filter states (the basis sequences
 convolved with the input) and, with the initial state estimated, the free response.
-
-Timed here, calls alternating, on the windows of the offline acceptance run's
+Timed, calls alternating, on the windows of the offline acceptance run's
 re-identifications (hydraulic drive, 40 % pole drift at 30 and 60 s, the twin's own
 attempts captured as they were made):
 
@@ -24,9 +32,9 @@ directions: the candidates' held-out predictions are compared, not their poles).
 
 Usage::
 
-    python benchmarks/bench_reid_fit.py [--quick] [--out JSON]
+    python benchmarks/bench_update.py [--quick] [--out JSON]
 
-(default ``benchmarks/results/reid_fit.json``).
+(default ``benchmarks/results/update.json``).
 """
 
 from __future__ import annotations
@@ -49,7 +57,12 @@ from _common import HERE, benchmark_result, machine_info, timed, write_json  # n
 from kautztwin.ident import kautz_oe  # noqa: E402
 from kautztwin.ident.kautz_oe import filter_states  # noqa: E402
 from kautztwin.twin import DigitalTwin, TwinConfig, make_plant  # noqa: E402
-from kautztwin.twin.update import worker  # noqa: E402
+from kautztwin.twin.update import (  # noqa: E402
+    RecursiveKautzEstimator,
+    SyncMonitor,
+    Updater,
+    worker,
+)
 
 DRIFTS = (30.0, 60.0)
 
@@ -107,6 +120,65 @@ def _held_out(job: Any, fit: Any) -> np.ndarray:
     return y[job.u.size - job.n_val:]
 
 
+FAST_DT = 0.02
+FORGETTING = 0.98
+
+
+def _fast_path(n: int, repeats: int) -> dict[str, Any]:
+    """Per-sample cost of the recursion and of ``Updater.step``, against the windowed refit."""
+    poles = np.exp(np.array([-1.0, -2.0, -4.0, -8.0]) * FAST_DT)
+    rng = np.random.default_rng(0)
+    u = np.repeat(rng.choice([-1.0, 1.0], n // 10 + 1), 10)[:n]
+    plant = RecursiveKautzEstimator(poles, dt=FAST_DT, coef_init=[1.0, -0.5, 0.3, 0.1],
+                                    offset_init=2.0).reset()
+    y = plant.simulate(u) + 0.01 * rng.standard_normal(n)
+    memory = int(round(3 / (1 - FORGETTING)))
+
+    def recursion():
+        est = RecursiveKautzEstimator(poles, dt=FAST_DT, forgetting=FORGETTING).reset()
+        for uk, yk in zip(u.tolist(), y.tolist(), strict=True):
+            est.update(uk, yk)
+        return est
+
+    def updater():
+        model = RecursiveKautzEstimator(poles, dt=FAST_DT).reset().model_
+        upd = Updater(model, dt=FAST_DT, forgetting=FORGETTING, reidentify=False,
+                      monitor=SyncMonitor(window=150, stride=25))
+        for uk, yk in zip(u.tolist(), y.tolist(), strict=True):
+            upd.step(uk, yk)
+        return upd
+
+    X = np.hstack([filter_states(plant.basis_, u)[:-1], np.ones((n, 1))])
+    weights = FORGETTING ** (np.arange(memory)[::-1] / 2.0)  # square roots of the weights
+
+    def refit():
+        theta = None
+        for k in range(memory, n + 1):
+            w = weights[:, None]
+            theta, *_ = np.linalg.lstsq(X[k - memory:k] * w, y[k - memory:k] * w[:, 0],
+                                        rcond=None)
+        return theta
+
+    est, _, theta = recursion(), updater(), refit()  # warm-up, and the results compared
+    t_rec, t_upd, t_fit = [], [], []
+    for _ in range(repeats):  # alternate, so that a burst of load hits all alike
+        t_rec.append(timed(recursion)[1] / n)
+        t_upd.append(timed(updater)[1] / n)
+        t_fit.append(timed(refit)[1] / (n - memory + 1))
+    row = {"samples": n, "memory": memory, "recursion_s": statistics.median(t_rec),
+           "updater_step_s": statistics.median(t_upd), "refit_s": statistics.median(t_fit),
+           "coef_rel_diff": float(np.max(np.abs(est.parameters_ - theta))
+                                  / np.max(np.abs(theta))),
+           "repeats_recursion_s": t_rec, "repeats_updater_step_s": t_upd,
+           "repeats_refit_s": t_fit}
+    row["speedup"] = row["refit_s"] / row["recursion_s"]
+    print(f"fast path, per sample: RLS update {1e6 * row['recursion_s']:.1f} us, Updater.step "
+          f"{1e6 * row['updater_step_s']:.1f} us; windowed refit ({memory} samples) "
+          f"{1e6 * row['refit_s']:.1f} us ({row['speedup']:.1f}x); coefficients differ by "
+          f"{row['coef_rel_diff']:.1e} of the largest")
+    return row
+
+
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     """Run the benchmark, print a table and write the JSON result.
 
@@ -122,11 +194,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     """
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="a shorter run, fewer repeats")
-    ap.add_argument("--out", type=Path, default=HERE / "results" / "reid_fit.json")
+    ap.add_argument("--out", type=Path, default=HERE / "results" / "update.json")
     args = ap.parse_args(argv)
     machine = machine_info()
     duration = 45.0 if args.quick else 90.0
     repeats = 2 if args.quick else 5
+    fast = _fast_path(2_000 if args.quick else 20_000, repeats)
     jobs = _jobs(duration)
     if args.quick:
         jobs = jobs[:4]
@@ -164,11 +237,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     print(f"all {len(rows)} fits: current {1e3 * total_c:.0f} ms, baseline {1e3 * total_b:.0f} ms "
           f"({total_b / total_c:.2f}x)")
     result = benchmark_result(
-        "reid_fit", argv, quick=args.quick,
+        "update", argv, quick=args.quick,
         settings={"duration_s": duration, "drift_events_s": list(DRIFTS), "repeats": repeats,
                   "plant": "hydraulic, 40 % pole drift", "initial_state":
                   worker._INITIAL_STATE},
-        machine=machine, rows=rows,
+        machine=machine, fast_path=fast, rows=rows,
         summary={"fits": len(rows), "current_s": total_c, "baseline_s": total_b,
                  "speedup": total_b / total_c})
     write_json(args.out, result)

@@ -1,7 +1,11 @@
-"""Smoke test of benchmarks/bench_reid_fit.py in --quick mode (issue #11).
+"""Smoke test of benchmarks/bench_update.py in --quick mode (issue #11).
 
-The script must run, time every captured re-identification window with both regressor
-implementations, and both must give the same candidate to the fit's resolution: the
+The script must run and time the fast path: its recursion must give the coefficients of
+the weighted least-squares fit over the forgetting factor's memory, to what the window
+leaves out (the weights beyond 3 / (1 - forgetting) samples, about 5 % of the first one,
+and the initial covariance; measured 5e-4 of the largest coefficient).  It must time every
+captured re-identification window with both regressor implementations, and both must give
+the same candidate to the fit's resolution: the
 held-out predictions within 1e-4 of the output's spread (the output-error cost is flat
 along some pole directions, so rounding differences move the poles by up to about 1e-4;
 a wrong regressor moves the prediction by whole percent).  Timings are not asserted.
@@ -16,16 +20,20 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-SCRIPT = ROOT / "benchmarks" / "bench_reid_fit.py"
+SCRIPT = ROOT / "benchmarks" / "bench_update.py"
 
 
-def test_quick_run_times_every_window_and_the_candidates_agree(tmp_path):
-    out = tmp_path / "reid_fit.json"
+def test_quick_run_times_the_fast_path_and_every_window_and_the_results_agree(tmp_path):
+    out = tmp_path / "update.json"
     env = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"}
     proc = subprocess.run([sys.executable, str(SCRIPT), "--quick", "--out", str(out)], cwd=ROOT,
                           env=env, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
     result = json.loads(out.read_text())
+    fast = result["fast_path"]
+    assert fast["coef_rel_diff"] < 1e-2
+    assert fast["recursion_s"] > 0 and fast["updater_step_s"] > 0 and fast["refit_s"] > 0
+    assert len(fast["repeats_recursion_s"]) == result["settings"]["repeats"]
     rows = result["rows"]
     assert len(rows) == result["summary"]["fits"] == 4
     for r in rows:
@@ -33,4 +41,4 @@ def test_quick_run_times_every_window_and_the_candidates_agree(tmp_path):
         assert abs(r["fit_current"] - r["fit_baseline"]) < 1e-3
         assert r["current_s"] > 0 and r["baseline_s"] > 0
         assert len(r["repeats_current_s"]) == result["settings"]["repeats"]
-    assert "speed-up" in proc.stdout and "wrote" in proc.stdout
+    assert "fast path" in proc.stdout and "speed-up" in proc.stdout and "wrote" in proc.stdout
