@@ -13,23 +13,11 @@ a wrong regressor moves the prediction by whole percent).  Timings are not asser
 
 from __future__ import annotations
 
-import json
-import os
-import subprocess
-import sys
-from pathlib import Path
-
-ROOT = Path(__file__).resolve().parent.parent
-SCRIPT = ROOT / "benchmarks" / "bench_update.py"
+from _bench_helpers import run_quick
 
 
 def test_quick_run_times_the_fast_path_and_every_window_and_the_results_agree(tmp_path):
-    out = tmp_path / "update.json"
-    env = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"}
-    proc = subprocess.run([sys.executable, str(SCRIPT), "--quick", "--out", str(out)], cwd=ROOT,
-                          env=env, capture_output=True, text=True, timeout=600)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    result = json.loads(out.read_text())
+    result, stdout = run_quick("bench_update.py", tmp_path / "update.json")
     fast = result["fast_path"]
     assert fast["coef_rel_diff"] < 1e-2
     assert fast["recursion_s"] > 0 and fast["updater_step_s"] > 0 and fast["refit_s"] > 0
@@ -41,4 +29,4 @@ def test_quick_run_times_the_fast_path_and_every_window_and_the_results_agree(tm
         assert abs(r["fit_current"] - r["fit_baseline"]) < 1e-3
         assert r["current_s"] > 0 and r["baseline_s"] > 0
         assert len(r["repeats_current_s"]) == result["settings"]["repeats"]
-    assert "fast path" in proc.stdout and "speed-up" in proc.stdout and "wrote" in proc.stdout
+    assert "fast path" in stdout and "speed-up" in stdout and "wrote" in stdout
