@@ -57,7 +57,14 @@ from ...exceptions import DataError
 from ..digital import discretize_model
 from ..update import ModelUpdate, Updater
 from ..update.steptest import step_test_record
-from ..update.worker import WORKER_KINDS, _ready, preload_in_workers, single_worker
+from ..update.worker import (
+    WORKER_KINDS,
+    _ready,
+    model_from_portable,
+    portable_model,
+    preload_in_workers,
+    single_worker,
+)
 
 __all__ = ["PoleJob", "PoleWorker", "judge_pole_candidate", "pole_candidate", "pole_job"]
 
@@ -198,11 +205,8 @@ def _warm() -> bool:
 def _pole_candidate_portable(job: PoleJob) -> tuple[Any, ...]:
     """:func:`pole_candidate` in a worker process, as plain picklable values."""
     out = pole_candidate(job)
-    if out.model is None:
-        return (None, out.elapsed, out.error)
-    b = out.model.basis
-    return ((b._kinds, np.asarray(b._params), b._dt, b._delayed,
-             np.asarray(out.model.coefficients)), out.elapsed, out.error)
+    plain = None if out.model is None else portable_model(out.model)
+    return (plain, out.elapsed, out.error)
 
 
 def _from_portable(value: tuple[Any, ...]) -> PoleOutcome:
@@ -210,9 +214,7 @@ def _from_portable(value: tuple[Any, ...]) -> PoleOutcome:
     plain, elapsed, error = value
     if plain is None:
         return PoleOutcome(None, elapsed, error)
-    kinds, params, dt, delayed, coef = plain
-    basis = KautzBasis._from_blocks(tuple(kinds), params, dt, delayed)
-    return PoleOutcome(KautzModel(basis, coef), elapsed, error)
+    return PoleOutcome(model_from_portable(plain), elapsed, error)
 
 
 def judge_pole_candidate(

@@ -100,21 +100,78 @@ def _fit_window(job: _ReidJob, cancel: threading.Event | None = None) -> _ReidOu
     return _ReidOutcome(best, time.perf_counter() - start)
 
 
-def _fit_window_portable(job: _ReidJob) -> tuple[Any, ...]:
-    """:func:`_fit_window` in a worker process, its outcome as plain, picklable values.
+def portable_model(model: KautzModel) -> tuple[Any, ...]:
+    """``model`` as plain, picklable values (for a worker process's result).
 
     A :class:`~kautztwin.basis.KautzBasis` does not pickle (it is immutable);
     its block kinds and parameters do, and rebuild it exactly
-    (:func:`_from_portable`).
+    (:func:`model_from_portable`).
+
+    Parameters
+    ----------
+    model : KautzModel
+
+    Returns
+    -------
+    tuple
     """
+    b = model.basis
+    return (b._kinds, np.asarray(b._params), b._dt, b._delayed, np.asarray(model.coefficients))
+
+
+def model_from_portable(plain: tuple[Any, ...]) -> KautzModel:
+    """The :class:`~kautztwin.KautzModel` of :func:`portable_model`'s values (bit for bit).
+
+    Parameters
+    ----------
+    plain : tuple
+
+    Returns
+    -------
+    KautzModel
+    """
+    kinds, params, dt, delayed, coef = plain
+    return KautzModel(KautzBasis._from_blocks(tuple(kinds), params, dt, delayed), coef)
+
+
+def portable_fit(fit: OutputErrorFit) -> tuple[Any, ...]:
+    """An :class:`~kautztwin.ident.kautz_oe.OutputErrorFit` as plain, picklable values.
+
+    Parameters
+    ----------
+    fit : OutputErrorFit
+
+    Returns
+    -------
+    tuple
+        Rebuilt by :func:`fit_from_portable`.
+    """
+    return (portable_model(fit.model), fit.offset, fit.input_offset, fit.fit_percent,
+            fit.n_evaluations, fit.success, fit.message)
+
+
+def fit_from_portable(plain: tuple[Any, ...]) -> OutputErrorFit:
+    """The :class:`~kautztwin.ident.kautz_oe.OutputErrorFit` of :func:`portable_fit` (bit for bit).
+
+    Parameters
+    ----------
+    plain : tuple
+
+    Returns
+    -------
+    OutputErrorFit
+    """
+    model, offset, input_offset, fit_percent, n_eval, ok, msg = plain
+    return OutputErrorFit(model_from_portable(model), offset, input_offset, fit_percent, n_eval,
+                          ok, msg)
+
+
+def _fit_window_portable(job: _ReidJob) -> tuple[Any, ...]:
+    """:func:`_fit_window` in a worker process, its outcome as plain, picklable values."""
     out = _fit_window(job)
-    fit = out.fit
-    if fit is None:  # pragma: no cover - no cancel event in a process
+    if out.fit is None:  # pragma: no cover - no cancel event in a process
         return (None, out.elapsed)
-    b = fit.model.basis
-    return ((b._kinds, np.asarray(b._params), b._dt, b._delayed,
-             np.asarray(fit.model.coefficients), fit.offset, fit.input_offset,
-             fit.fit_percent, fit.n_evaluations, fit.success, fit.message), out.elapsed)
+    return (portable_fit(out.fit), out.elapsed)
 
 
 def _from_portable(value: tuple[Any, ...]) -> _ReidOutcome:
@@ -122,11 +179,7 @@ def _from_portable(value: tuple[Any, ...]) -> _ReidOutcome:
     plain, elapsed = value
     if plain is None:  # pragma: no cover
         return _ReidOutcome(None, elapsed)
-    kinds, params, dt, delayed, coef, offset, input_offset, fit_percent, n_eval, ok, msg = plain
-    basis = KautzBasis._from_blocks(tuple(kinds), params, dt, delayed)
-    fit = OutputErrorFit(KautzModel(basis, coef), offset, input_offset, fit_percent, n_eval,
-                         ok, msg)
-    return _ReidOutcome(fit, elapsed)
+    return _ReidOutcome(fit_from_portable(plain), elapsed)
 
 
 @dataclass
