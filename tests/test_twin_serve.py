@@ -391,8 +391,8 @@ def test_end_to_end_sync_fit_after_each_recovery_window(tmp_path):
     estimated and the controller's states built in blocks (16 of 24 interleaved runs
     without the former): the misses are marginal windows (94.16 to 94.92 %, one 92.35 %),
     8 after a recovery window and 2 in the closed loop's first seconds; with the
-    re-identification fits about 1.5x faster, 34 of 40 (21 of 24 interleaved against 20 of
-    24 without).
+    re-identification fits about 1.5x faster, 54 of 64 (34 of 40; then 20 of 24 interleaved
+    with a variant not adopted).
     docs/service.md has the figures.  ``-s`` prints them.
     """
     metrics, segments, figures = _end_to_end_run(tmp_path)
