@@ -10,8 +10,9 @@
 * :mod:`.loop`: :class:`DigitalTwin`, the thin sample loop, helped by
   :mod:`.record` (bookkeeping, history store, resume), :mod:`.excitation`
   (excitation and faults), :mod:`.twins` (initial identification, static
-  twin), :mod:`.versions` (what follows each update) and :mod:`.control`
-  (which controller runs).
+  twin), :mod:`.birth` (a live plant's twin built without stalling the loop),
+  :mod:`.versions` (what follows each update) and :mod:`.control` (which
+  controller runs).
 
 :class:`~kautztwin.twin.prediction.MPCController` and
 :func:`~kautztwin.twin.physical.factory.make_plant` are re-exported here.

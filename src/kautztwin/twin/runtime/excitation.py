@@ -10,7 +10,7 @@ from numpy.typing import NDArray
 
 from .config import TwinConfig
 
-__all__ = ["FaultPlan", "binary_signal", "excitation"]
+__all__ = ["FaultPlan", "binary_signal", "continued_excitation", "excitation"]
 
 
 def binary_signal(rng: np.random.Generator, n: int, amp: float, hold: tuple[int, int]) -> NDArray:
@@ -32,6 +32,26 @@ def excitation(config: TwinConfig) -> tuple[NDArray, NDArray]:
                                               cfg.ident_hold)
     d = binary_signal(rng, n, cfg.dither, cfg.dither_hold) if cfg.dither > 0 else np.zeros(n)
     return u_ident, d
+
+
+def continued_excitation(config: TwinConfig) -> NDArray:
+    """The identification excitation's continuation: ``n_ident`` more samples of it.
+
+    What a live plant gets while its twin identifies in the background
+    (:mod:`.birth`): the same binary signal (level, amplitude, holds), seeded
+    apart from :func:`excitation`'s signals, which it therefore leaves unchanged.
+
+    Parameters
+    ----------
+    config : TwinConfig
+
+    Returns
+    -------
+    ndarray of shape (n_ident,)
+    """
+    cfg = config
+    rng = np.random.default_rng([cfg.seed, 104729])
+    return cfg.ident_level + binary_signal(rng, cfg.n_ident, cfg.ident_amplitude, cfg.ident_hold)
 
 
 @dataclass(frozen=True, eq=False)

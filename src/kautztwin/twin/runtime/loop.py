@@ -56,9 +56,12 @@ decision to the period the plant applies it), over which the MPC predicts
 and decides again once it has caught up.  It also holds its input until the plant reports the
 last new one applied, so no input is overtaken on the wire and jumped over
 (the rate limit holds at the plant): against a live plant the controller
-decides once per round trip of the link.  The initial identification stalls the loop
-while a live plant goes on sampling: the loop then takes the queued samples holding the
-last identification input and starts the closed loop once it has caught up
+decides once per round trip of the link.  With background workers a live plant's twin
+is built without stalling the loop (:mod:`.birth`: the fit and the first tuning in a
+worker, the catch-up a slice per sample) while the plant gets the excitation's
+continuation; without them the identification stalls the loop while a live plant goes on
+sampling, and the loop then takes the queued samples holding the last identification
+input.  Either way the closed loop starts once the loop has caught up
 (:meth:`DigitalTwin._catching_up`; ``k_closed_loop`` of the run is that sample).
 
 **Resume.**  :meth:`DigitalTwin.start` with ``resume=True`` looks for an unfinished
@@ -98,6 +101,7 @@ from ..physical import Clock, Plant, Reading, ReplayPlant, SampleFlag
 from ..prediction import MPCController
 from ..prediction.controller import MAX_DELAY
 from ..update import Updater
+from .birth import BackgroundBirth
 from .config import TwinConfig
 from .excitation import FaultPlan, excitation
 from .inflight import InputsInFlight
@@ -249,6 +253,7 @@ class DigitalTwin:
         self.state = TwinState(-1, math.nan, "identification")
         self._started = False
         self._versions: ModelVersions | None = None
+        self._birth: BackgroundBirth | None = None  # a live plant's twin in the making (.birth)
 
     # ------------------------------------------------------------------ properties
     @property
@@ -339,7 +344,9 @@ class DigitalTwin:
         self._faults = FaultPlan.for_config(cfg)
         self._sanitizer = make_sanitizer(cfg)
         self._k = 0
-        self._k_id = cfg.n_ident  # the twin is born (the initial identification)
+        self._k_id = cfg.n_ident  # the identification phase ends (the initial identification)
+        self._k_born = cfg.n_ident  # the twin is born (later: a live plant's background fit)
+        self._born_stored: tuple[int, tuple[float, float] | None] | None = None  # resumed
         self._k_cl = cfg.n_ident  # the closed loop starts (later: a live plant catching up)
         self._k_cl_stored: int | None = None  # where a resumed live run's closed loop started
         self._v_prev = cfg.operating_input
@@ -369,6 +376,11 @@ class DigitalTwin:
             self._versions.resumed()  # where the stored run judged its live pole retunings
         if self._replay.rows is not None and not self._replayable:
             self._k_cl_stored = self._stored_closed_loop()
+            self._born_stored = self._stored_birth()
+        if (self.background and cfg.controlled and not self._replayable
+                and self._born_stored is None):
+            # a live plant goes on sampling while its twin is built (see .birth)
+            self._birth = BackgroundBirth(cfg, str(cfg.updater.get("worker", "thread")))
         self._started = True
         self.clock.start()
         self._clock_t0 = 0.0
@@ -472,9 +484,11 @@ class DigitalTwin:
             u = self._recorded_input(k)
             v, d = u, 0.0
         else:
-            if k == self._k_id:
-                self._begin_twin(k, t_k)
-            if self._catching_up(k, t_k):
+            if self.updater is None and not self._born(k, t_k):
+                phase = "identification"  # the excitation goes on while the twin identifies
+                u = v = self._ident_input(k)
+                d = 0.0
+            elif self._catching_up(k, t_k):
                 phase = "identification"  # its last input held until the loop has caught up
                 u = v = self._u_prev
                 d = 0.0
@@ -509,7 +523,8 @@ class DigitalTwin:
             waiting = stored is None or k < stored
         else:
             # at k_id the reading predates the identification that just stalled the loop
-            waiting = (k == self._k_id or self._behind(k)) and k - self._k_id < self.config.n_ident
+            waiting = ((k == self._k_born or self._behind(k))
+                       and k - self._k_born < self.config.n_ident)
         if waiting:
             self._k_cl = k + 1
             return True
@@ -518,6 +533,21 @@ class DigitalTwin:
             "during the identification taken first", {"k_closed_loop": k,
                                                        "caught_up": k - self._k_id})
         return False
+
+    def _stored_birth(self) -> tuple[int, tuple[float, float] | None] | None:
+        """``(k, tuning_point)``: where the run being resumed built its twin (``None``: not yet).
+
+        ``tuning_point``: the ``(u_op, y_op)`` its first controller was tuned at
+        when it was built in the background, else ``None``.
+        """
+        assert self.run_id is not None
+        for e in self.history.events(self.run_id, "phase"):
+            info = e.payload or {}
+            if isinstance(info.get("fit_percent"), float) and e.k is not None:
+                point = info.get("tuning_point")
+                return int(e.k), (None if point is None else (float(point[0]),
+                                                              float(point[1])))
+        return None
 
     def _stored_closed_loop(self) -> int | None:
         """The closed-loop start stored by the run being resumed (``None``: not reached)."""
@@ -751,15 +781,20 @@ class DigitalTwin:
     def _ident_input(self, k: int) -> float:
         """The identification input of sample ``k`` (controlled run).
 
-        A live plant goes on sampling while the twin identifies (the loop stalls at
-        ``n_ident``), holding the input of the last identification sample: that one is
-        the excitation's centre ``ident_level``, so the plant waits at the operating
-        point it was identified around, not at an edge of the excitation (where the
-        closed loop would start outside the identified range).  Its response falls
-        after the identification record, which it therefore leaves unchanged.
+        Without background workers a live plant goes on sampling while the twin
+        identifies (the loop stalls at ``n_ident``), holding the input of the last
+        identification sample: that one is the excitation's centre ``ident_level``, so
+        the plant waits at the operating point it was identified around, not at an edge
+        of the excitation (where the closed loop would start outside the identified
+        range).  Its response falls after the identification record, which it therefore
+        leaves unchanged.  With them, the samples from ``n_ident`` until the twin is
+        born get the excitation's continuation (:mod:`.birth`).
         """
         if k == self._k_id - 1 and not self._replayable:
             return float(self.config.ident_level)
+        if k >= self._k_id:  # the twin is being identified in the background (.birth)
+            birth = self._birth
+            return birth.input(k - self._k_id) if birth is not None else self._u_prev
         return float(self._u_ident[k])
 
     def _recorded_input(self, k: int) -> float:
@@ -775,23 +810,87 @@ class DigitalTwin:
         return self.plant.step(u)
 
     # ------------------------------------------------------------------ identification
-    def _begin_twin(self, k: int, t: float) -> None:
-        """End of the identification phase: identify, build the twins and the controller."""
+    def _born(self, k: int, t: float) -> bool:
+        """Whether the twin of a controlled run exists at sample ``k >= n_ident`` (built now?).
+
+        At ``n_ident`` it is identified and built at once, unless a live plant's
+        twin is built in the background (:mod:`.birth`): then it is born at the
+        first sample at which its fit, catch-up and first tuning are done.  The
+        replay of a resumed live run builds it where the stored run did.
+        """
+        birth = self._birth
+        if self._replay.active(k) and not self._replayable:
+            stored = self._born_stored
+            if stored is None or k < stored[0]:
+                return False
+            self._begin_twin(k, t, tuning_point=stored[1])
+        elif birth is not None:
+            if not self._grown(k, birth):
+                return False
+            assert birth.twins is not None
+            _, tuning = birth.tuning(wait=True)
+            self._begin_twin(k, t, fit=birth.fit, twins=birth.twins, start=birth.started_at,
+                             tuning_point=birth.tuning_point, tuning=tuning)
+            birth.close()
+            self._birth = None
+        else:
+            self._begin_twin(k, t)
+        self._k_born = k
+        self._k_cl = max(self._k_cl, k)
+        return True
+
+    def _grown(self, k: int, birth: BackgroundBirth) -> bool:
+        """One step of a twin built in the background; whether it can be born at ``k``."""
+        cfg = self.config
+        a = self._record.arrays
+        if not birth.submitted:
+            birth.submit(a["u"][:self._k_id], a["y_clean"][:self._k_id])
+        if birth.twins is None:
+            if not birth.fit_due(k - self._k_id):
+                return False
+            fit = birth.take_fit()
+            if fit is None:  # a broken worker: identify here
+                fit = identify_initial(cfg, a["u"][:self._k_id].copy(),
+                                       a["y_clean"][:self._k_id].copy())
+            twins = make_twins(fit, cfg, background=True, estimator=self.estimator)
+            y_op = a["y_clean"][k - 1]
+            y_op = float(y_op) if math.isfinite(y_op) else float(fit.offset)
+            birth.conceive(fit, twins, self.optimizer, (float(cfg.ident_level), y_op))
+        caught_up = birth.catch_up(a, k)
+        return caught_up and (birth.tuning()[0] or k - self._k_id >= 2 * cfg.n_ident)
+
+    def _begin_twin(
+        self, k: int, t: float, *, fit: Any = None, twins: Any = None, start: float | None = None,
+        tuning_point: tuple[float, float] | None = None, tuning: Any = None,
+    ) -> None:
+        """The twin's birth: identify, build the twins and the first controller (or take them).
+
+        The twins catch up on the samples before ``k`` (unless ``twins`` have);
+        the first controller is tuned at ``tuning_point`` (``(u_op, y_op)``;
+        the command in force and the sample's output when omitted), or takes
+        ``tuning``, made there in the background.
+        """
         cfg = self.config
         rec = self._record
         a = rec.arrays
-        start = time.perf_counter()
-        fit = identify_initial(cfg, a["u"][:k].copy(), a["y_clean"][:k].copy())
-        # a resumed run replays its committed samples synchronously (as fast as possible)
-        background = self.background and not self._replay.active(k)
-        self.updater, self.static, rates = make_twins(fit, cfg, background=background,
-                                                      estimator=self.estimator)
-        catch_up(self.updater, self.static, a, k)  # the twins catch up on the samples so far
-        rec.identification = identification_info(fit, rates, k, start)
+        start = time.perf_counter() if start is None else start
+        if fit is None:
+            fit = identify_initial(cfg, a["u"][:self._k_id].copy(),
+                                   a["y_clean"][:self._k_id].copy())
+        if twins is None:
+            # a resumed run replays its committed samples synchronously (as fast as possible)
+            background = self.background and not self._replay.active(k)
+            twins = make_twins(fit, cfg, background=background, estimator=self.estimator)
+            catch_up(twins[0], twins[1], a, k)  # the twins catch up on the samples so far
+        self.updater, self.static, rates = twins
+        rec.identification = identification_info(fit, rates, self._k_id, start, k_twin=k,
+                                                 tuning_point=tuning_point)
         rec.event("phase", k, t, f"identified the initial model: fit {fit.fit_percent:.2f} %",
                   rec.identification)
         assert self._versions is not None
-        self._versions.first(self.updater, k, t, u_op=self._v_prev, offload=self._offloaded(k))
+        u_op, y_op = tuning_point if tuning_point is not None else (self._v_prev, None)
+        self._versions.first(self.updater, k, t, u_op=u_op, offload=self._offloaded(k),
+                             y_op=y_op, tuning=tuning)
 
     def _offloaded(self, k: int) -> bool:
         """Whether a new version's optimisation runs in the worker (background, not replaying)."""
@@ -905,6 +1004,8 @@ class DigitalTwin:
         for upd in (self.updater, self.static):
             if upd is not None:
                 upd.close()
+        if self._birth is not None:
+            self._birth.close()
         if self._versions is not None:
             self._versions.close()
         self.plant.close()

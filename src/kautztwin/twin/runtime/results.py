@@ -141,7 +141,11 @@ class TwinRun:
         Sample counters (``total, dropout, outlier, clipped, held, late, ...``)
         and update counters (``attempts, accepted``).
     identification : mapping
-        The initial identification: ``fit_percent, poles, offset, elapsed``.
+        The initial identification: ``fit_percent, poles, continuous_poles, offset,
+        n_samples`` (the samples identified), ``k_twin`` (the sample the twin was built
+        at: ``n_samples`` unless a live plant's twin was built in the background, then
+        also ``tuning_point``, the ``(u_op, y_op)`` of its first controller's tuning)
+        and ``elapsed`` (wall seconds from the fit's start to the twin).
     resume : mapping
         ``resumed, resume_k, replayed, replay_mismatches``.
     wall_time : float

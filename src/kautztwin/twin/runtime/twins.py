@@ -113,11 +113,16 @@ def make_twins(
 
 
 def catch_up(
-    updater: Updater, static: Updater | None, arrays: dict[str, NDArray[Any]], k: int
+    updater: Updater, static: Updater | None, arrays: dict[str, NDArray[Any]], k: int,
+    start: int = 0,
 ) -> None:
-    """Step both twins through the identification samples ``0 .. k-1`` (their predictions kept)."""
+    """Step both twins through the samples ``start .. k-1`` (their predictions kept).
+
+    At the twin's birth, the samples before it (``start=0``); a live plant's
+    twin born in the background takes them a slice at a time (:mod:`.birth`).
+    """
     a = arrays
-    for j in range(k):
+    for j in range(start, k):
         r = updater.step(a["u"][j], a["y"][j], a["t"][j])
         a["y_pred"][j] = r.y_pred_frozen
         if static is not None:
@@ -126,12 +131,24 @@ def catch_up(
 
 
 def identification_info(
-    fit: OutputErrorFit, rates: NDArray[np.float64], k: int, start: float
+    fit: OutputErrorFit, rates: NDArray[np.float64], k: int, start: float,
+    k_twin: int | None = None, tuning_point: tuple[float, float] | None = None,
 ) -> dict[str, Any]:
-    """The ``identification`` of a TwinRun (``start``: ``time.perf_counter()`` before it)."""
-    return {
+    """The ``identification`` of a TwinRun.
+
+    ``k``: the samples identified; ``start``: ``time.perf_counter()`` when the
+    fit started; ``k_twin``: the sample at which the twin was built (``k``
+    unless a live plant's twin was built in the background, see :mod:`.birth`),
+    and then ``tuning_point``: the ``(u_op, y_op)`` its first controller was
+    tuned at.
+    """
+    info = {
         "fit_percent": fit.fit_percent, "offset": fit.offset,
         "poles": [[float(p.real), float(p.imag)] for p in fit.model.poles],
         "continuous_poles": [float(r) for r in np.sort(rates)],
-        "n_samples": int(k), "elapsed": time.perf_counter() - start,
+        "n_samples": int(k), "k_twin": int(k if k_twin is None else k_twin),
+        "elapsed": time.perf_counter() - start,
     }
+    if tuning_point is not None:
+        info["tuning_point"] = [float(tuning_point[0]), float(tuning_point[1])]
+    return info

@@ -35,7 +35,7 @@ from typing import Any
 from ...approx.model import KautzModel
 from ...exceptions import KautzTwinError
 from ..digital import DigitalModel
-from ..optimization import EstimatorRetraining
+from ..optimization import ControllerTuning, EstimatorRetraining
 from ..optimization.background import OptimizationJob, OptimizationWorker
 from ..optimization.poles import (
     PendingPoles,
@@ -103,7 +103,8 @@ class ModelVersions:
         self._stored_poles: dict[int, int] | None = None  # replay: resync k -> judged at
 
     # ------------------------------------------------------------------ the first version
-    def first(self, updater: Updater, k: int, t: float, *, u_op: float, offload: bool) -> None:
+    def first(self, updater: Updater, k: int, t: float, *, u_op: float, offload: bool,
+              y_op: float | None = None, tuning: ControllerTuning | None = None) -> None:
         """The identified version: store it and build the first controller on it.
 
         Parameters
@@ -116,7 +117,13 @@ class ModelVersions:
             The command in force (where a weight retuning starts).
         offload : bool
             Later versions are optimised in the background worker (the first
-            controller is always tuned here, before the closed loop starts).
+            controller is tuned before the closed loop starts: here, or given).
+        y_op : float, optional
+            The output the tuning starts from (sample ``k``'s when omitted).
+        tuning : ControllerTuning, optional
+            The first controller's tuning, made already at ``(u_op, y_op)`` (a
+            live plant's twin built in the background, see
+            :mod:`kautztwin.twin.runtime.birth`); tuned here when omitted.
         """
         cfg = self.config
         rec = self.record
@@ -133,7 +140,7 @@ class ModelVersions:
             # for the identification anyway, with the plant parked at the excitation's
             # centre, and an untuned first controller (the configured weights) would run
             # the closed loop's first seconds while a worker tuned it
-            self._retune_controller(k, t, u_op, initial=True)
+            self._retune_controller(k, t, u_op, initial=True, y_op=y_op, tuning=tuning)
             rec.event("phase", k, t, "closed loop: MPC tracking with twin updates", {})
         else:
             rec.event("phase", k, t, "monitoring: the twin follows the recorded plant", {})
@@ -367,13 +374,18 @@ class ModelVersions:
             float(upd.estimator_.predict()))
         return upd.digital_model.model, upd.digital_model.version, u_op, y_op
 
-    def _retune_controller(self, k: int, t: float, u_op: float, *, initial: bool = False) -> None:
+    def _retune_controller(
+        self, k: int, t: float, u_op: float, *, initial: bool = False, y_op: float | None = None,
+        tuning: ControllerTuning | None = None,
+    ) -> None:
         cfg = self.config
         assert self.updater is not None and cfg.mpc is not None
-        model, version, u_op, y_op = self._tuning_point(k, u_op)
-        tuning = self.optimizer.tune_controller(
-            model, cfg.mpc, step=cfg.tuning_step(), u_op=u_op, y_op=y_op
-        )
+        model, version, u_op, y_k = self._tuning_point(k, u_op)
+        if tuning is None:
+            tuning = self.optimizer.tune_controller(
+                model, cfg.mpc, step=cfg.tuning_step(), u_op=u_op,
+                y_op=y_k if y_op is None else y_op,
+            )
         self.control.apply_tuning(tuning, model, version, k, t, initial=initial)
 
     def _offload(self, dm: DigitalModel, k: int, t: float, u_op: float) -> None:
