@@ -77,9 +77,11 @@ retuning and estimator retraining run in a worker thread
 whose module notes give the rules); every :meth:`DigitalTwin.step` applies what has
 finished with the rules, events and log entries of the synchronous path.
 
-Size: the module is :class:`DigitalTwin` alone, over 400 lines because about
-200 of them are the numpydoc docstrings of its public API; its code (the
-sample loop and its phases) is some 350 lines, every other job delegated.
+Size: the module is :class:`DigitalTwin` alone, about 1 000 lines: some 400
+of them are docstrings (the numpydoc of its public API and the notes of a live
+plant's paths), its code (the sample loop and its phases: identification,
+the twin's birth, catching up with a live plant, control, update) some 550,
+every other job delegated to the modules beside it.
 """
 
 from __future__ import annotations
