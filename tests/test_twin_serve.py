@@ -393,8 +393,8 @@ def test_end_to_end_sync_fit_after_each_recovery_window(tmp_path):
     8 after a recovery window and 2 in the closed loop's first seconds; with the
     re-identification fits about 1.5x faster, 54 of 64 (34 of 40; then 20 of 24 interleaved
     with a variant not adopted); with a live plant's twin built without stalling the loop
-    (``runtime/birth.py``), 21 of 24 interleaved against 21 of 24 without, its lowest
-    window before the first drift 0.4 points higher.
+    (``runtime/birth.py``), 35 of 40 (21 of 24 interleaved against 21 of 24 without, its
+    lowest window before the first drift 0.4 points higher; then 14 of 16).
     docs/service.md has the figures.  ``-s`` prints them.
     """
     metrics, segments, figures = _end_to_end_run(tmp_path)
