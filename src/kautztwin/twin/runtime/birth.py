@@ -37,6 +37,7 @@ point, so the replay gives the same twin and controller.
 
 from __future__ import annotations
 
+import math
 import time
 from concurrent.futures import Future
 from typing import Any
@@ -47,7 +48,7 @@ from ..update.worker import fit_from_portable, portable_fit, preload_in_workers,
 from .config import TwinConfig
 from .excitation import continued_excitation
 from .protocols import TwinError
-from .twins import catch_up, identify_initial
+from .twins import catch_up, identify_initial, make_twins
 
 __all__ = ["CATCH_UP_SLICE", "BackgroundBirth"]
 
@@ -232,6 +233,51 @@ class BackgroundBirth:
         catch_up(updater, static, arrays, stop, start=self._next)
         self._next = stop
         return stop == k
+
+    def grow(self, arrays: dict[str, NDArray[Any]], k: int, *, optimizer: Any,
+             estimator: Any = None) -> bool:
+        """One loop sample's step of the twin's making; whether it can be born at ``k``.
+
+        Submits the fit at the first call; once the fit has arrived (or is
+        due: :meth:`fit_due`) builds the twins on it (:func:`~.twins.make_twins`,
+        background workers; a failed worker's fit is made here) and submits the
+        first tuning at ``(ident_level, y(k - 1))`` (:meth:`conceive`); then
+        steps the twins through a slice of the history (:meth:`catch_up`).
+
+        Parameters
+        ----------
+        arrays : dict of ndarray
+            The run's per-sample arrays (``u``, ``y_clean``, ``y``, ``t``, predictions).
+        k : int
+            The current sample (``>= n_ident``).
+        optimizer : object
+            The optimization module (its ``tune_controller``).
+        estimator : object, optional
+            The update module's DNN estimator.
+
+        Returns
+        -------
+        bool
+            Whether the twins have caught up and the tuning has arrived (or is
+            due: ``2 n_ident`` samples after the identification phase).
+        """
+        cfg = self.config
+        n_id = cfg.n_ident
+        a = arrays
+        if not self.submitted:
+            self.submit(a["u"][:n_id], a["y_clean"][:n_id])
+        if self.twins is None:
+            if not self.fit_due(k - n_id):
+                return False
+            fit = self.take_fit()
+            if fit is None:  # a broken worker: identify here
+                fit = identify_initial(cfg, a["u"][:n_id].copy(), a["y_clean"][:n_id].copy())
+            twins = make_twins(fit, cfg, background=True, estimator=estimator)
+            y_op = a["y_clean"][k - 1]
+            y_op = float(y_op) if math.isfinite(y_op) else float(fit.offset)
+            self.conceive(fit, twins, optimizer, (float(cfg.ident_level), y_op))
+        caught_up = self.catch_up(a, k)
+        return caught_up and (self.tuning()[0] or k - n_id >= 2 * n_id)
 
     def tuning(self, wait: bool = False) -> tuple[bool, Any]:
         """``(ready, tuning)``: the first controller's tuning once it has arrived.

@@ -827,7 +827,8 @@ class DigitalTwin:
                 return False
             self._begin_twin(k, t, tuning_point=stored[1])
         elif birth is not None:
-            if not self._grown(k, birth):
+            if not birth.grow(self._record.arrays, k, optimizer=self.optimizer,
+                              estimator=self.estimator):
                 return False
             assert birth.twins is not None
             _, tuning = birth.tuning(wait=True)
@@ -840,26 +841,6 @@ class DigitalTwin:
         self._k_born = k
         self._k_cl = max(self._k_cl, k)
         return True
-
-    def _grown(self, k: int, birth: BackgroundBirth) -> bool:
-        """One step of a twin built in the background; whether it can be born at ``k``."""
-        cfg = self.config
-        a = self._record.arrays
-        if not birth.submitted:
-            birth.submit(a["u"][:self._k_id], a["y_clean"][:self._k_id])
-        if birth.twins is None:
-            if not birth.fit_due(k - self._k_id):
-                return False
-            fit = birth.take_fit()
-            if fit is None:  # a broken worker: identify here
-                fit = identify_initial(cfg, a["u"][:self._k_id].copy(),
-                                       a["y_clean"][:self._k_id].copy())
-            twins = make_twins(fit, cfg, background=True, estimator=self.estimator)
-            y_op = a["y_clean"][k - 1]
-            y_op = float(y_op) if math.isfinite(y_op) else float(fit.offset)
-            birth.conceive(fit, twins, self.optimizer, (float(cfg.ident_level), y_op))
-        caught_up = birth.catch_up(a, k)
-        return caught_up and (birth.tuning()[0] or k - self._k_id >= 2 * cfg.n_ident)
 
     def _begin_twin(
         self, k: int, t: float, *, fit: Any = None, twins: Any = None, start: float | None = None,
