@@ -163,7 +163,8 @@ def test_batched_drive_matches_scalar_coefficients_and_plant() -> None:
         np.testing.assert_allclose(batch.step([u])[0], plant.step(u).y, rtol=1e-6)
 
 
-def test_fleet_sanitizer_and_monitor_match_scalar_classes() -> None:
+@pytest.mark.parametrize("margin", [0.0, 3.0])
+def test_fleet_sanitizer_and_monitor_match_scalar_classes(margin: float) -> None:
     rng = np.random.default_rng(5)
     n, m = 3, 400
     y = 100.0 + np.cumsum(rng.standard_normal((n, m)), axis=1) * 0.2
@@ -171,17 +172,24 @@ def test_fleet_sanitizer_and_monitor_match_scalar_classes() -> None:
     y[1, 200:] += 30.0  # a level shift
     y[2, 90] = np.nan  # a dropout
     fs = FleetSanitizer(n, threshold=8.0, window=100, min_scale=1.0)
-    fm = FleetMonitor(n, window=50, stride=10, threshold=95.0, n_consecutive=2)
-    y_pred = y + rng.standard_normal((n, m)) * np.linspace(0.01, 3.0, m)
+    fm = FleetMonitor(n, window=50, stride=10, threshold=95.0, n_consecutive=2,
+                      resync_margin=margin)
+    # error levels: small (fits near 99 %), large (desync), middling (fits of 93 to 98 %:
+    # with a margin of 3, no resync below 98 %), small (resync), middling, large, middling
+    scale = np.repeat([0.01, 1.0, 0.02, 0.01, 0.02, 1.0, 0.02], [80, 60, 60, 40, 80, 40, 40])
+    y_pred = y + rng.standard_normal((n, m)) * scale
     ref_s = [SampleSanitizer(threshold=8.0, window=100, min_scale=1.0) for _ in range(n)]
-    ref_m = [SyncMonitor(window=50, stride=10, threshold=95.0, n_consecutive=2)
-             for _ in range(n)]
+    ref_m = [SyncMonitor(window=50, stride=10, threshold=95.0, n_consecutive=2,
+                         resync_margin=margin) for _ in range(n)]
     events = []
+    n_events = {"desync": 0, "resync": 0}
     for k in range(m):
         flags = fs.process(y[:, k])
         clean = (flags & 18) == 0
         _, de, re, _ = fm.update(y[:, k], y_pred[:, k], clean)
         events += [(int(i), k, "desync") for i in de] + [(int(i), k, "resync") for i in re]
+        for kind, got in (("desync", de), ("resync", re)):
+            n_events[kind] += got.size
         for i in range(n):
             s = ref_s[i].process(y[i, k])
             assert int(s.flags) == flags[i], (i, k)
@@ -189,6 +197,7 @@ def test_fleet_sanitizer_and_monitor_match_scalar_classes() -> None:
                 for e in ref_m[i].update(y[i, k], y_pred[i, k], k=k):
                     events.remove((i, k, e.kind))
     assert events == []
+    assert n_events["resync"] > 0 and n_events["desync"] > 0  # both kinds were compared
     for i in range(n):
         np.testing.assert_allclose(fm.fit[i], ref_m[i].fit, rtol=1e-12)
 

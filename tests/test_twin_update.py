@@ -255,6 +255,42 @@ def test_sync_monitor_flags_a_drift_and_the_recovery():
     assert hist.fit.size == len(range(39, 600, 10)) and np.all(hist.k >= 39)
 
 
+def _windows_with_fits(fits: list[float], size: int = 10) -> tuple[np.ndarray, np.ndarray]:
+    """``(y, y_pred)`` whose back-to-back windows of ``size`` samples have these fits exactly.
+
+    ``y`` alternates +-1 (mean 0, norm sqrt(size) per window); a constant error ``c`` over a
+    window has norm ``|c| sqrt(size)``, so that window's fit is ``100 (1 - |c|)``.
+    """
+    y = np.tile([1.0, -1.0], size * len(fits) // 2)
+    err = np.repeat([1.0 - f / 100.0 for f in fits], size)
+    return y, y + err
+
+
+@pytest.mark.parametrize("margin, resync_at", [(0.0, 3), (1.0, 5)])
+def test_sync_monitor_resynchronises_at_the_threshold_plus_its_margin(margin, resync_at):
+    # windows: good, bad, bad (desync), two between 95 and 96, one at 96.5
+    fits = [97.0, 50.0, 50.0, 95.5, 95.5, 96.5, 97.0]
+    y, pred = _windows_with_fits(fits)
+    mon = SyncMonitor(window=10, stride=10, threshold=95.0, n_consecutive=2,
+                      resync_margin=margin)
+    events = [(e.kind, k // 10) for k in range(y.size) for e in mon.update(y[k], pred[k], k=k)]
+    np.testing.assert_allclose(mon.history.fit, fits, rtol=0, atol=1e-9)
+    assert events == [("desync", 2), ("resync", resync_at)]
+    assert mon.in_sync and mon.n_bad == 0
+
+
+def test_sync_monitor_windows_inside_the_margin_end_a_run_of_bad_windows():
+    # bad, (95.5: neither bad nor good), bad, bad: the second desync needs two new bad windows
+    y, pred = _windows_with_fits([50.0, 50.0, 95.5, 50.0, 95.5, 50.0, 50.0, 96.0])
+    mon = SyncMonitor(window=10, stride=10, threshold=95.0, n_consecutive=2,
+                      resync_margin=1.0)
+    events = [(e.kind, k // 10) for k in range(y.size) for e in mon.update(y[k], pred[k], k=k)]
+    assert events == [("desync", 1), ("desync", 6), ("resync", 7)]
+    assert "resync_margin=1" in repr(mon)
+    with pytest.raises(DataError, match="resync_margin"):
+        SyncMonitor(resync_margin=-0.5)
+
+
 def test_sync_monitor_ignores_nan_and_constant_windows():
     mon = SyncMonitor(window=5, stride=1, threshold=95.0, n_consecutive=1)
     for _ in range(10):

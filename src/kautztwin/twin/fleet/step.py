@@ -699,7 +699,8 @@ class Fleet:
             updaters = [make_twins(f, cfg, background=False)[0] for f in fits]
             mon = FleetMonitor(N, window=cfg.monitor_window, stride=cfg.monitor_stride,
                                threshold=cfg.monitor_threshold,
-                               n_consecutive=cfg.monitor_consecutive)
+                               n_consecutive=cfg.monitor_consecutive,
+                               resync_margin=cfg.monitor_resync_margin)
             # the command ring gives every input of the last h samples (all of them when h is
             # the run's length): the update module's buffer needs no copy of its own
             span = self._hist_len if self._hist_len < cfg.n_samples else None

@@ -163,7 +163,7 @@ class FleetMonitor:
     Parameters
     ----------
     n_assets : int
-    window, stride, threshold, n_consecutive
+    window, stride, threshold, n_consecutive, resync_margin
         As :class:`~kautztwin.twin.SyncMonitor`.
 
     Attributes
@@ -176,9 +176,11 @@ class FleetMonitor:
 
     def __init__(
         self, n_assets: int, *, window: int, stride: int, threshold: float, n_consecutive: int,
+        resync_margin: float = 0.0,
     ) -> None:
         self.window, self.stride = int(window), int(stride)
         self.threshold, self.n_consecutive = float(threshold), int(n_consecutive)
+        self.resync_margin = float(resync_margin)
         self.y = np.zeros((n_assets, self.window))
         self.yp = np.zeros((n_assets, self.window))
         self.count = np.zeros(n_assets, dtype=np.int64)
@@ -240,6 +242,7 @@ class FleetMonitor:
         g = due[~bad]
         self.n_bad[g] = 0
         back = g[~self.in_sync[g]]
+        back = back[self.fit[back] >= self.threshold + self.resync_margin]  # the hysteresis
         self.in_sync[back] = True
         return due, fire, back, fits
 

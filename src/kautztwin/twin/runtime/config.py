@@ -158,6 +158,10 @@ class TwinConfig:
         rate (0: none).
     monitor_window, monitor_stride, monitor_threshold, monitor_consecutive
         :class:`~kautztwin.twin.SyncMonitor` settings (the rolling fit).
+    monitor_resync_margin : float
+        The monitor's ``resync_margin``: fit points above ``monitor_threshold``
+        that a desynchronised twin must reach to resynchronise (0: the
+        threshold itself).
     updater : mapping
         Further keyword arguments of :class:`~kautztwin.twin.Updater`
         (``'background'`` among them: see :class:`~kautztwin.twin.runtime.DigitalTwin`;
@@ -206,6 +210,7 @@ class TwinConfig:
     monitor_threshold: float
     monitor_consecutive: int
     updater: Mapping[str, Any] = field(default_factory=dict)
+    monitor_resync_margin: float = 0.0
     sanitizer_threshold: float = 8.0
     sanitizer_window: int = 100
     sensor_scale: float = 0.0
@@ -235,6 +240,10 @@ class TwinConfig:
                 f"the identification phase has {n_id} samples; {10 * (self.n_poles + 1)} are "
                 f"needed for {self.n_poles} poles"
             )
+        margin = float(self.monitor_resync_margin)
+        if not (math.isfinite(margin) and margin >= 0):
+            raise DataError(f"monitor_resync_margin must be a finite number >= 0, got {margin}")
+        object.__setattr__(self, "monitor_resync_margin", margin)
         object.__setattr__(self, "ident_hold", tuple(int(h) for h in self.ident_hold))
         object.__setattr__(self, "dither_hold", tuple(int(h) for h in self.dither_hold))
         for name in ("ident_hold", "dither_hold"):
@@ -407,7 +416,7 @@ class TwinConfig:
                 mpc=MPCSettings(75, 0.85, 6, 1e5, u_min=0.3, u_max=0.7, du_max=0.05,
                                 y_min=70.0, y_max=130.0, dither=0.02),
                 forgetting=0.98, extra_pole_factor=0.5, monitor_window=150, monitor_stride=25,
-                monitor_threshold=95.0, monitor_consecutive=2,
+                monitor_threshold=95.0, monitor_consecutive=2, monitor_resync_margin=1.0,
                 updater={"min_rate": 1.0, "max_iter": 20 if quick else 30},
                 sensor_scale=1.0, recovery_window=15.0, commit_every=50,
             )

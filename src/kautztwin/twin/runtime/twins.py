@@ -45,7 +45,8 @@ def make_monitor(config: TwinConfig) -> SyncMonitor:
     """The synchronisation monitor of the configuration."""
     cfg = config
     return SyncMonitor(window=cfg.monitor_window, stride=cfg.monitor_stride,
-                       threshold=cfg.monitor_threshold, n_consecutive=cfg.monitor_consecutive)
+                       threshold=cfg.monitor_threshold, n_consecutive=cfg.monitor_consecutive,
+                       resync_margin=cfg.monitor_resync_margin)
 
 
 def identify_initial(config: TwinConfig, u: NDArray, y: NDArray) -> OutputErrorFit:

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from ..._validation import check_int, check_number, to_float_or_nan
+from ..._validation import check_int, check_nonnegative, check_number, to_float_or_nan
 from ...metrics import fit_percent_or_nan
 
 __all__ = ["FitHistory", "SyncEvent", "SyncMonitor"]
@@ -38,7 +38,7 @@ class SyncEvent:
         ``'desync'``: the rolling fit stayed below the threshold for
         ``n_consecutive`` windows (a re-identification trigger; repeated every
         further ``n_consecutive`` bad windows).  ``'resync'``: the fit is back
-        above the threshold.
+        above the threshold (plus the monitor's ``resync_margin``).
     k : int or None
         Sample index that completed the window.
     t : float or None
@@ -99,7 +99,12 @@ class SyncMonitor:
     below ``threshold`` for ``n_consecutive`` windows in a row emits a
     ``'desync'`` :class:`SyncEvent` (the trigger for re-identification); it is
     emitted again after every further ``n_consecutive`` bad windows while the
-    fit stays low, and a ``'resync'`` event follows the first good window.
+    fit stays low, and a ``'resync'`` event follows the first window whose fit
+    reaches ``threshold + resync_margin``.  With a margin this is a
+    hysteresis: a window between the two ends a run of bad windows but not the
+    desynchronisation, so a twin that has only just climbed back over the
+    threshold stays desynchronised, and its recovery goes on, until its fit is
+    clearly good again.
 
     Parameters
     ----------
@@ -111,6 +116,9 @@ class SyncMonitor:
         Fit percent below which a window is bad.
     n_consecutive : int, default=3
         Bad windows in a row that make a desynchronisation.
+    resync_margin : float, default=0.0
+        Fit points above ``threshold`` that a desynchronised twin's window must
+        reach to resynchronise (``>= 0``).
 
     Raises
     ------
@@ -149,6 +157,7 @@ class SyncMonitor:
         stride: int | None = None,
         threshold: float = 95.0,
         n_consecutive: int = 3,
+        resync_margin: float = 0.0,
     ) -> None:
         window = check_int(window, "window", 3)
         stride = max(1, window // 4) if stride is None else check_int(stride, "stride", 1)
@@ -157,6 +166,7 @@ class SyncMonitor:
         self.stride = stride
         self.threshold = threshold
         self.n_consecutive = check_int(n_consecutive, "n_consecutive", 1)
+        self.resync_margin = check_nonnegative(resync_margin, "resync_margin")
         self.reset()
 
     def clear_window(self) -> None:
@@ -236,7 +246,7 @@ class SyncMonitor:
                 )
             return ()
         self.n_bad = 0
-        if not self.in_sync:
+        if not self.in_sync and fit >= self.threshold + self.resync_margin:
             self.in_sync = True
             return (
                 SyncEvent("resync", k, t, fit, 0, f"twin resynchronised: fit {fit:.2f} %"),
@@ -259,6 +269,7 @@ class SyncMonitor:
     def __repr__(self) -> str:
         return (
             f"SyncMonitor(window={self.window}, stride={self.stride}, threshold={self.threshold:g},"
-            f" n_consecutive={self.n_consecutive}, fit={self.fit:.2f})"
+            f" n_consecutive={self.n_consecutive}, resync_margin={self.resync_margin:g},"
+            f" fit={self.fit:.2f})"
         )
 
