@@ -291,6 +291,19 @@ def test_sync_monitor_windows_inside_the_margin_end_a_run_of_bad_windows():
         SyncMonitor(resync_margin=-0.5)
 
 
+def test_the_profiles_resync_margins_reach_the_monitor():
+    from kautztwin.twin import TwinConfig
+    from kautztwin.twin.runtime.twins import make_monitor
+
+    assert make_monitor(TwinConfig.for_plant("hydraulic")).resync_margin == 1.0
+    assert make_monitor(TwinConfig.for_plant("tclab")).resync_margin == 0.0
+    assert make_monitor(TwinConfig.for_plant("hydraulic", monitor_resync_margin=2.5)
+                        ).resync_margin == 2.5
+    for bad in (-1.0, math.nan):
+        with pytest.raises(DataError, match="monitor_resync_margin"):
+            TwinConfig.for_plant("hydraulic", monitor_resync_margin=bad)
+
+
 def test_sync_monitor_ignores_nan_and_constant_windows():
     mon = SyncMonitor(window=5, stride=1, threshold=95.0, n_consecutive=1)
     for _ in range(10):
