@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 
 from ..._json import to_jsonable
+from ..._validation import check_nonnegative
 from ...exceptions import DataError
 from ..physical import HydraulicPlant, Plant, ReplayPlant, TCLabPlant
 from ..prediction import MPCSettings
@@ -240,10 +241,8 @@ class TwinConfig:
                 f"the identification phase has {n_id} samples; {10 * (self.n_poles + 1)} are "
                 f"needed for {self.n_poles} poles"
             )
-        margin = float(self.monitor_resync_margin)
-        if not (math.isfinite(margin) and margin >= 0):
-            raise DataError(f"monitor_resync_margin must be a finite number >= 0, got {margin}")
-        object.__setattr__(self, "monitor_resync_margin", margin)
+        object.__setattr__(self, "monitor_resync_margin",
+                           check_nonnegative(self.monitor_resync_margin, "monitor_resync_margin"))
         object.__setattr__(self, "ident_hold", tuple(int(h) for h in self.ident_hold))
         object.__setattr__(self, "dither_hold", tuple(int(h) for h in self.dither_hold))
         for name in ("ident_hold", "dither_hold"):
