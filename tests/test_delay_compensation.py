@@ -203,6 +203,56 @@ def test_live_loop_starts_the_closed_loop_once_it_has_caught_up():
     assert sim.k_closed_loop == n_id
 
 
+def test_fast_path_restarts_its_covariance_at_a_live_closed_loop_start(monkeypatch):
+    """A live plant's closed loop starts with the fast path's covariance back at delta I.
+
+    Only there: a simulated plant's closed loop starts at ``n_ident``, right after the
+    twin was built with a fresh covariance, and keeps it (its runs are unchanged).
+    """
+    from kautztwin.twin import HydraulicPlant
+    from kautztwin.twin.runtime import DigitalTwin, TwinConfig
+    from kautztwin.twin.update.recursive import RecursiveKautzEstimator
+
+    cfg = TwinConfig.for_plant("hydraulic", duration=12.0, quick=True, static_twin=False)
+    n_id, backlog = cfg.n_ident, 60
+    restarts: list[np.ndarray] = []
+    original = RecursiveKautzEstimator.reset_covariance
+
+    def spy(self, delta=None):
+        restarts.append(self.covariance_)  # the covariance it replaces
+        original(self, delta)
+
+    monkeypatch.setattr(RecursiveKautzEstimator, "reset_covariance", spy)
+
+    def steps(plant, until):
+        """``{k: restarts during the step of sample k}`` and the twin."""
+        twin = DigitalTwin(plant, cfg, background=False)
+        twin.start()
+        seen = {}
+        while twin.k < until:
+            k, before = twin.k, len(restarts)
+            twin.step()
+            if len(restarts) > before:
+                seen[k] = len(restarts) - before
+        return seen, twin
+
+    seen, twin = steps(_Backlog(HydraulicPlant(dt=0.02, temperature=20.0, noise=0.01,
+                                               random_state=1), n_id, backlog),
+                       n_id + backlog + 100)
+    k_cl = twin.result().k_closed_loop
+    assert k_cl > n_id + 40 and seen == {k_cl: 1}, (seen, k_cl)
+    est = twin.updater.estimator_
+    replaced = restarts[-1]
+    # what it replaced had adapted far from delta I over the identification's samples
+    assert not np.allclose(replaced, est.delta * np.eye(replaced.shape[0]), rtol=0.1)
+    twin.close()
+    restarts.clear()
+    seen, twin = steps(HydraulicPlant(dt=0.02, temperature=20.0, noise=0.01, random_state=1),
+                       n_id + 100)
+    assert twin.result().k_closed_loop == n_id and seen == {}
+    twin.close()
+
+
 def test_resumed_live_run_replays_the_closed_loop_start(tmp_path):
     """A resumed live run starts its closed loop at the stored sample, not at n_ident."""
     from kautztwin.twin import HydraulicPlant

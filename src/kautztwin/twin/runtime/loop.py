@@ -615,6 +615,10 @@ class DigitalTwin:
                 for upd in (self.updater, self.static):
                     if upd is not None:
                         upd.monitor.clear_window()
+                # the fast path enters the controller's regime with a fresh covariance, as
+                # after a new model version (docs/service.md: "The fast path at the closed
+                # loop's start"): the one built over the excitation re-adapted slowly
+                self.updater.estimator_.reset_covariance()
             r = _step_updater(self.updater, u, y_raw, t_k, adapt=live, judge=live)
             a["y_pred"][k] = r.y_pred_frozen
             if r.model_update is None:
