@@ -396,7 +396,9 @@ def test_end_to_end_sync_fit_after_each_recovery_window(tmp_path):
     (``runtime/birth.py``), 35 of 40 (21 of 24 interleaved against 21 of 24 without, its
     lowest window before the first drift 0.4 points higher; then 14 of 16); with the
     resync's hysteresis (``monitor_resync_margin``), 61 of 69 against 56 of 65 for the tree
-    without it, run in the same sessions (20 of 24 against 19 of 24 interleaved).
+    without it, run in the same sessions (20 of 24 against 19 of 24 interleaved); with the
+    fast path's covariance restarted at a live closed loop's start, 23 of 24 against 18 of
+    24 interleaved (the tree without it: 31 of 36 more runs in the same session).
     docs/service.md has the figures.  ``-s`` prints them.
     """
     metrics, segments, figures = _end_to_end_run(tmp_path)
