@@ -206,8 +206,8 @@ def test_live_loop_starts_the_closed_loop_once_it_has_caught_up():
 def test_fast_path_restarts_its_covariance_at_a_live_closed_loop_start(monkeypatch):
     """A live plant's closed loop starts with the fast path's covariance back at delta I.
 
-    Only there: a simulated plant's closed loop starts at ``n_ident``, right after the
-    twin was built with a fresh covariance, and keeps it (its runs are unchanged).
+    Only there: a simulated plant's closed loop starts at ``n_ident``, where the twin is
+    built, and keeps the covariance of the twin's catch-up (its runs are unchanged).
     """
     from kautztwin.twin import HydraulicPlant
     from kautztwin.twin.runtime import DigitalTwin, TwinConfig

@@ -616,8 +616,8 @@ class DigitalTwin:
                     if upd is not None:
                         upd.monitor.clear_window()
                 # the fast path enters the controller's regime with a fresh covariance, as
-                # after a new model version (docs/service.md: "The fast path at the closed
-                # loop's start"): the one built over the excitation re-adapted slowly
+                # after a new model version: the closed loop's first windows fit better in
+                # served runs (docs/service.md, "The fast path at the closed loop's start")
                 self.updater.estimator_.reset_covariance()
             r = _step_updater(self.updater, u, y_raw, t_k, adapt=live, judge=live)
             a["y_pred"][k] = r.y_pred_frozen
