@@ -228,6 +228,47 @@ def test_output_error_with_the_initial_state_estimated_fits_a_window_after_a_cha
         np.testing.assert_allclose(np.sort(fit.model.poles.real), np.sort(POLES_SLOW), rtol=1e-6)
 
 
+@pytest.mark.parametrize("initial_state", [False, True])
+def test_output_error_jacobian_is_the_derivative_of_the_residual(initial_state):
+    """The variable-projection Jacobian against central differences of the residual itself.
+
+    A real pole and a pair searched, an offset, unused samples (NaN, burn-in), noise, at a
+    point away from the optimum: the residual is large there, so the term of the full
+    Jacobian that Kaufman's approximation leaves out matters (checked below), and a missing
+    term or a wrong sign would be off by order one.  Tolerance: the Jacobian's forward
+    differences of the basis sequences are accurate to about sqrt(eps) ~ 1.5e-8 of a
+    column, the central differences (step 1e-5) to ~1e-10 (truncation) and ~1e-11
+    (rounding); 1e-6 of the largest entry leaves a wide margin and nothing more.
+    """
+    from kautztwin.basis._blocks import PAIR, REAL
+    from kautztwin.ident.kautz_oe import _OEProblem
+
+    u = _binary(500, seed=3)
+    y, _ = _cascade(u, POLES_SLOW)
+    y = y + 0.05 * np.random.default_rng(4).standard_normal(u.size)
+    y[[60, 61, 300]] = np.nan
+    prob = _OEProblem((REAL, PAIR), u, y, DT, burn_in=40, fit_offset=True,
+                      initial_state=initial_state)
+    x = np.array([math.log(2.0), math.log(6.0), 3.0])  # rate 2/s; pair: rate 6/s, 3 rad/s
+    h = 1e-5
+    ref = np.column_stack([(prob.residual(x + h * e) - prob.residual(x - h * e)) / (2 * h)
+                           for e in np.eye(x.size)])
+    scale = np.abs(ref).max()
+    J = prob.jacobian(x)
+    assert J.shape == (np.isfinite(y[40:]).sum(), 3)
+    assert np.abs(J - ref).max() <= 1e-6 * scale
+    # Kaufman's approximation (the first term only) is far from it here: the test can tell
+    _, X, _ = prob._fit(x)
+    U = np.linalg.svd(X, full_matrices=False)[0]
+    r = prob.residual(x)
+    assert np.linalg.norm(r) > 0.1 * np.linalg.norm(prob.y - prob.y.mean())
+    kaufman = J - U @ (U.T @ J)  # the part outside the regressors' span: -P X_j theta
+    assert np.abs(J - kaufman).max() > 1e-3 * scale  # the in-span part: the term left out
+    # at the upper bound the differences step backwards and give the same Jacobian
+    prob.upper = x + 1e-12
+    np.testing.assert_allclose(prob.jacobian(x), J, rtol=0, atol=1e-6 * scale)
+
+
 def test_output_error_initial_state_needs_room_for_its_parameters():
     u = _binary(40, seed=1)
     y, _ = _cascade(u, POLES)

@@ -28,12 +28,14 @@ from numpy.typing import ArrayLike, NDArray
 from .._validation import check_choice, check_int, check_number, check_positive
 from ..approx.model import KautzModel
 from ..basis import KautzBasis
-from ..basis._blocks import PAIR, REAL, parse_poles
+from ..basis._blocks import PAIR, REAL, discrete_matrices, parse_poles
 from ..basis._propagate import discrete_functions
 from ..exceptions import DataError, DimensionError
 from ..metrics import fit_percent_or_nan
 
 __all__ = ["OutputErrorFit", "continuous_poles", "filter_states", "identify_output_error"]
+
+_FD_STEP = math.sqrt(np.finfo(float).eps)  # forward-difference step of the Jacobian
 
 
 def filter_states(
@@ -126,7 +128,7 @@ class OutputErrorFit:
     fit_percent : float
         Simulation fit on the samples used (after the burn-in), percent.
     n_evaluations : int
-        Residual evaluations over all starts.
+        Residual evaluations over all starts (the Jacobians evaluate no residual).
     success : bool
         Whether the best start met its tolerance.
     message : str
@@ -157,7 +159,15 @@ class OutputErrorFit:
 
 
 class _OEProblem:
-    """Variable projection for output error: poles searched, ``c`` and ``d`` by least squares."""
+    """Variable projection for output error: poles searched, ``c`` and ``d`` by least squares.
+
+    The residual is ``y - X(x) theta(x)`` with ``theta`` the least-squares solution for the
+    regressors ``X`` of the poles ``x``; :meth:`jacobian` is Kaufman's variable-projection
+    Jacobian of it (Golub & Pereyra 2003, section 3: the term of the full Jacobian that is
+    proportional to the residual is left out), so a Gauss-Newton step costs one batched
+    evaluation of the perturbed basis sequences and one convolution instead of a residual
+    evaluation per searched parameter.
+    """
 
     def __init__(
         self, kinds: tuple[str, ...], u: NDArray, y: NDArray, dt: float, burn_in: int,
@@ -176,6 +186,35 @@ class _OEProblem:
         self.burn_in = burn_in
         self.initial_state = initial_state
         self.n_eval = 0
+        self.upper: NDArray | None = None  # search bounds: a difference step stays inside
+        self._last: tuple[NDArray, NDArray, NDArray, NDArray] | None = None
+
+    def block_params(self, xs: NDArray) -> NDArray[np.float64]:
+        """z-plane block parameters of search points ``xs`` (one point per row)."""
+        xs = np.atleast_2d(xs)
+        out = np.empty_like(xs)
+        for row, x in enumerate(xs):
+            col = 0
+            for kind in self.kinds:
+                rate = math.exp(x[col]) * self.dt
+                if kind == REAL:
+                    out[row, col] = math.exp(-rate)
+                    col += 1
+                else:
+                    z = np.exp(complex(-rate, x[col + 1] * self.dt))
+                    out[row, col], out[row, col + 1] = z.real, abs(z.imag)
+                    col += 2
+        return out
+
+    def sequences(self, xs: NDArray) -> NDArray[np.float64]:
+        """Delayed basis sequences ``F[:, k] = A^{k-1} B`` of every row of ``xs``: (b, n_f, n + 1).
+
+        The same values as ``basis(x).evaluate(k * dt)`` (one batched recursion for all rows).
+        """
+        A, B = discrete_matrices(self.kinds, self.block_params(xs))
+        F = np.zeros((A.shape[0], A.shape[1], self._grid.size))
+        F[:, :, 1:] = discrete_functions(A, B, self._grid[:-1])
+        return F
 
     def regressors(self, basis: KautzBasis) -> NDArray:
         """Columns ``[x_f, (free response), (1)]`` on the used samples; ``c`` first.
@@ -184,41 +223,75 @@ class _OEProblem:
         convolution with the input (:func:`filter_states`, with the input's
         spectrum kept), the free response their values from the burn-in on.
         """
-        F = basis.evaluate(self._grid * basis.dt)  # delayed: F[:, k] = A^{k-1} B
-        X = self._spectrum.convolve(F)[:, :-1].T
+        return self._columns(basis.evaluate(self._grid * basis.dt))
+
+    def _columns(self, F: NDArray, constant: float = 1.0) -> NDArray:
+        """Regressors of the sequences ``F``, ``(n_f, n + 1)`` or a batch ``(b, n_f, n + 1)``.
+
+        ``constant`` fills the offset's column (0 for derivatives of the regressors).
+        """
+        batch = F.reshape(-1, F.shape[-2], F.shape[-1])
+        b, n_f, n_k = batch.shape
+        X = self._spectrum.convolve(batch.reshape(b * n_f, n_k))[:, :-1]
+        X = X.reshape(b, n_f, n_k - 1).transpose(0, 2, 1)
         cols = [X]
         if self.initial_state:  # the undelayed sequences A^(k - b) B from the first fitted k = b
             m = self.u.size - self.burn_in
             free = np.zeros_like(X)
-            free[self.burn_in:] = F[:, 1: m + 1].T
+            free[:, self.burn_in:] = batch[:, :, 1: m + 1].transpose(0, 2, 1)
             cols.append(free)
         if self.fit_offset:
-            cols.append(np.ones((X.shape[0], 1)))
-        return np.hstack(cols)[self.use] if len(cols) > 1 else X[self.use]
+            cols.append(np.full((b, n_k - 1, 1), constant))
+        out = np.concatenate(cols, axis=2)[:, self.use]
+        return out[0] if F.ndim == 2 else out
 
     def basis(self, x: NDArray) -> KautzBasis:
-        params = np.empty_like(x)
-        col = 0
-        for kind in self.kinds:
-            rate = math.exp(x[col]) * self.dt
-            if kind == REAL:
-                params[col] = math.exp(-rate)
-                col += 1
-            else:
-                z = np.exp(complex(-rate, x[col + 1] * self.dt))
-                params[col], params[col + 1] = z.real, abs(z.imag)
-                col += 2
-        return KautzBasis._from_blocks(self.kinds, params, self.dt, True)
+        return KautzBasis._from_blocks(self.kinds, self.block_params(x)[0], self.dt, True)
+
+    def _fit(self, x: NDArray) -> tuple[NDArray, NDArray, NDArray]:
+        """``(F, X, theta)`` at ``x``, kept for the Jacobian at the same point."""
+        if self._last is None or not np.array_equal(self._last[0], x):
+            self.n_eval += 1
+            F = self.sequences(x)[0]
+            X = self._columns(F)
+            theta, *_ = np.linalg.lstsq(X, self.y, rcond=None)
+            self._last = (np.array(x, dtype=float), F, X, theta)
+        return self._last[1:]
 
     def solve(self, x: NDArray) -> tuple[KautzBasis, NDArray, NDArray]:
-        self.n_eval += 1
-        basis = self.basis(x)
-        X = self.regressors(basis)
-        theta, *_ = np.linalg.lstsq(X, self.y, rcond=None)
-        return basis, theta, self.y - X @ theta
+        _, X, theta = self._fit(x)
+        return self.basis(x), theta, self.y - X @ theta
 
     def residual(self, x: NDArray) -> NDArray:
-        return self.solve(x)[2]
+        _, X, theta = self._fit(x)
+        return self.y - X @ theta
+
+    def jacobian(self, x: NDArray) -> NDArray[np.float64]:
+        r"""Jacobian of :meth:`residual` (Golub & Pereyra's variable-projection formula).
+
+        With :math:`X_j = \partial X / \partial x_j`, :math:`X^+` the pseudo-inverse of
+        the regressors, :math:`P^\perp = I - X X^+` and :math:`r` the residual, column
+        :math:`j` is :math:`-P^\perp X_j \theta - (X^+)^T X_j^T r` (exact: ``theta``'s
+        own change with :math:`x` is in it).  The derivatives of the basis sequences
+        are forward differences in the search coordinates (step
+        :math:`\sqrt{\epsilon}\max(1, |x_j|)`, as scipy's ``'2-point'``, backwards at
+        the upper bound), all of them from one batched recursion; no residual is
+        evaluated again, which is what a difference Jacobian of the residual costs
+        per searched parameter.
+        """
+        F, X, theta = self._fit(x)
+        r = self.y - X @ theta
+        step = _FD_STEP * np.maximum(1.0, np.abs(x))
+        if self.upper is not None:
+            step = np.where(x + step > self.upper, -step, step)
+        dF = (self.sequences(x + np.diag(step)) - F) / step[:, None, None]  # (n_x, n_f, n + 1)
+        U, s, Vt = np.linalg.svd(X, full_matrices=False)
+        keep = s > s[0] * max(X.shape) * np.finfo(float).eps  # lstsq's rank (rcond=None)
+        U, s, Vt = U[:, keep], s[keep], Vt[keep]
+        dX = self._columns(dF, constant=0.0)  # (n_x, n_used, n_theta)
+        a = (dX @ theta).T  # column j: X_j theta
+        g = np.einsum("jkp,k->pj", dX, r)  # column j: X_j^T r
+        return U @ (U.T @ a) - a - U @ ((Vt @ g) / s[:, None])
 
 
 def _oe_x(kinds: tuple[str, ...], params: NDArray) -> NDArray:
@@ -266,7 +339,10 @@ def identify_output_error(
     of the input ``u_0 = u[0]``.  For given poles :math:`c` and :math:`d` are the linear
     least-squares solution, so only the poles are searched
     (``scipy.optimize.least_squares`` over continuous-time log-rates and
-    frequencies, so every iterate is stable).  The first ``burn_in`` samples
+    frequencies, so every iterate is stable, with Golub and Pereyra's
+    variable-projection Jacobian: one batched evaluation of the perturbed basis
+    sequences per Jacobian instead of a residual evaluation per searched
+    parameter).  The first ``burn_in`` samples
     are left out of the error while the unknown initial state dies out.
 
     Parameters
@@ -380,9 +456,11 @@ def identify_output_error(
     for kinds, params in starts:
         prob = _OEProblem(kinds, u, y, dt, burn_in, bool(fit_offset), estimate_x0)
         lo_b, hi_b = _oe_bounds(kinds, n, dt, rate_lo)
+        prob.upper = hi_b
         x0 = np.clip(_oe_x(kinds, params), lo_b + 1e-6 * (hi_b - lo_b), hi_b - 1e-6 * (hi_b - lo_b))
         sol = scipy.optimize.least_squares(
-            prob.residual, x0, bounds=(lo_b, hi_b), method="trf", x_scale="jac",
+            prob.residual, x0, jac=prob.jacobian, bounds=(lo_b, hi_b), method="trf",
+            x_scale="jac",
             ftol=tol, xtol=tol, gtol=tol, max_nfev=max_iter * (x0.size + 1),
         )
         n_eval += prob.n_eval

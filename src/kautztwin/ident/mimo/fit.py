@@ -198,6 +198,10 @@ class _MIMOProblem(_OEProblem):
         theta, *_ = np.linalg.lstsq(X, self.y / self.scale, rcond=None)
         return basis, theta * self.scale, (self.y / self.scale - X @ theta).ravel()
 
+    def residual(self, x: NDArray) -> NDArray:
+        """Scaled residuals of all outputs (the search differentiates it numerically)."""
+        return self.solve(x)[2]
+
 
 def _real_starts(m: int, lo: float, hi: float) -> list[tuple[tuple[str, ...], NDArray]]:
     """Log-spaced real rates over two spreads of ``[lo, hi]`` (as the SISO fit starts)."""
