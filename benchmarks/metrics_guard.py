@@ -18,8 +18,10 @@ to the printed digits (relative 1e-9). A refactor that claims "no behaviour chan
 architecture change of issue #10; it is rewritten only with a change that moves figures on
 purpose, and docs/service.md lists the figures that moved: so far the controller's filter
 states built in blocks (rounding only), the re-identification's estimated initial state,
-the re-identification's regressors built with the input's spectrum kept (rounding only) and
-the monitor's resync hysteresis of the hydraulic profile (22 figures of the twin run).
+the re-identification's regressors built with the input's spectrum kept (rounding only),
+the monitor's resync hysteresis of the hydraulic profile (22 figures of the twin run) and
+the output-error fits' variable-projection Jacobian (35 figures of the twin run, at the fit's
+resolution).
 """
 
 from __future__ import annotations

@@ -398,7 +398,9 @@ def test_end_to_end_sync_fit_after_each_recovery_window(tmp_path):
     resync's hysteresis (``monitor_resync_margin``), 61 of 69 against 56 of 65 for the tree
     without it, run in the same sessions (20 of 24 against 19 of 24 interleaved); with the
     fast path's covariance restarted at a live closed loop's start, 23 of 24 against 18 of
-    24 interleaved, 57 of 60 in all (the tree without it: 51 of 62 in the same session).
+    24 interleaved, 57 of 60 in all (the tree without it: 51 of 62 in the same session);
+    with the output-error fits' variable-projection Jacobian (fits 1.8x faster), 46 of 48
+    against 42 of 48 interleaved with the tree before it.
     docs/service.md has the figures.  ``-s`` prints them.
     """
     metrics, segments, figures = _end_to_end_run(tmp_path)
