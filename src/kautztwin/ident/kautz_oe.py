@@ -217,17 +217,12 @@ class _OEProblem:
         F[:, :, 1:] = discrete_functions(A, B, self._grid[:-1])
         return F
 
-    def regressors(self, basis: KautzBasis) -> NDArray:
-        """Columns ``[x_f, (free response), (1)]`` on the used samples; ``c`` first.
-
-        The basis sequences are evaluated once: the filter states are their
-        convolution with the input (:func:`filter_states`, with the input's
-        spectrum kept), the free response their values from the burn-in on.
-        """
-        return self._columns(basis.evaluate(self._grid * basis.dt))
-
     def _columns(self, F: NDArray, constant: float = 1.0) -> NDArray:
         """Regressors of the sequences ``F``, ``(n_f, n + 1)`` or a batch ``(b, n_f, n + 1)``.
+
+        Columns ``[x_f, (free response), (1)]`` on the used samples, ``c`` first: the
+        filter states are the sequences convolved with the input (the input's spectrum
+        kept), the free response their undelayed values from the burn-in on.
 
         ``constant`` fills the offset's column (0 for derivatives of the regressors).
         """
@@ -473,7 +468,7 @@ def identify_output_error(
     offset = float(theta[-1]) if fit_offset else 0.0
     model = KautzModel(basis, theta[:n_f])
     if estimate_x0:
-        yhat = prob.regressors(basis) @ theta
+        yhat = prob._fit(sol.x)[1] @ theta
     else:
         yhat = (filter_states(basis, u)[:-1] @ theta[:n_f] + offset)[prob.use]
     return OutputErrorFit(
