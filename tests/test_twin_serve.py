@@ -400,8 +400,8 @@ def test_end_to_end_sync_fit_after_each_recovery_window(tmp_path):
     fast path's covariance restarted at a live closed loop's start, 23 of 24 against 18 of
     24 interleaved, 57 of 60 in all (the tree without it: 51 of 62 in the same session);
     with the output-error fits' variable-projection Jacobian (fits 1.8x faster), 46 of 48
-    against 42 of 48 interleaved with the tree before it, then 24 of 24 (70 of 72).
-    docs/service.md has the figures.  ``-s`` prints them.
+    against 42 of 48 interleaved with the tree before it, then 24 of 24 (70 of 72); 36 of
+    40 more in a later session (106 of 112).  docs/service.md has the figures.  ``-s`` prints them.
     """
     metrics, segments, figures = _end_to_end_run(tmp_path)
     assert all(segments) and all(min(f) >= 95.0 for f in segments), figures
