@@ -19,9 +19,10 @@ architecture change of issue #10; it is rewritten only with a change that moves 
 purpose, and docs/service.md lists the figures that moved: so far the controller's filter
 states built in blocks (rounding only), the re-identification's estimated initial state,
 the re-identification's regressors built with the input's spectrum kept (rounding only),
-the monitor's resync hysteresis of the hydraulic profile (22 figures of the twin run) and
-the output-error fits' variable-projection Jacobian (35 figures of the twin run, at the fit's
-resolution).
+the monitor's resync hysteresis of the hydraulic profile (22 figures of the twin run), the
+output-error fits' variable-projection Jacobian (35 figures of the twin run, at the fit's
+resolution) and the hydraulic fast path's quadratic input channel with directional
+forgetting (37 figures of the twin run: 23 values, 14 of a model version no longer made).
 """
 
 from __future__ import annotations

@@ -51,6 +51,7 @@ def _compare(n_assets: int, duration: float) -> None:
     fleet = Fleet(LoopedFleetPlant([_plant(i) for i in range(n_assets)]), _config(duration),
                   seeds=seeds)
     fr = fleet.run(progress=False)
+    window = _config(duration).monitor_window
     for i in range(n_assets):
         with DigitalTwin(_plant(i), _config(duration, seeds[i])) as tw:
             run = tw.run(progress=False)
@@ -66,7 +67,22 @@ def _compare(n_assets: int, duration: float) -> None:
         np.testing.assert_array_equal(fr.arrays["flags"][i], run.arrays["flags"])
         k, f = fr.fit_history(i)
         np.testing.assert_array_equal(k, fits.k)
-        np.testing.assert_allclose(f, fits.fit, rtol=0, atol=1e-5)
+        before = k < first  # windows ending before the first new version: rounding only
+        np.testing.assert_allclose(f[before], fits.fit[before], rtol=0, atol=1e-5)
+        # after it, a window's fit moves with its predictions: |d fit| <= 100 |d y_pred| /
+        # |y - mean y| over the window, with |d y_pred| <= RTOL_AFTER_UPDATE |y_pred| (asserted
+        # above): a bound derived from that tolerance, not a tolerance of its own.  Measured
+        # with the hydraulic profile's directional forgetting and quadratic channel: 2.3e-3
+        # points in one window (a fit of 59 %, inside a recovery) of one asset of 50, whose
+        # third version differed at the fit's resolution (2.5e-6 relative in y_pred); the
+        # other 49 within 6.2e-10 points
+        for kk, fa, fb in zip(k[~before], f[~before], fits.fit[~before], strict=True):
+            w = slice(kk - window + 1, kk + 1)
+            y_w, p_w = run.arrays["y"][w], run.arrays["y_pred"][w]
+            ok = np.isfinite(y_w) & np.isfinite(p_w)
+            bound = 100 * RTOL_AFTER_UPDATE * np.linalg.norm(p_w[ok]) / np.linalg.norm(
+                y_w[ok] - y_w[ok].mean())
+            assert abs(fa - fb) <= bound, (i, kk, fa, fb, bound)
         for key in ("reidentification_attempts", "reidentifications_accepted", "mpc_failures"):
             assert fr.counts[key][i] == run.counts[key], (i, key)
 

@@ -401,7 +401,10 @@ def test_end_to_end_sync_fit_after_each_recovery_window(tmp_path):
     24 interleaved, 57 of 60 in all (the tree without it: 51 of 62 in the same session);
     with the output-error fits' variable-projection Jacobian (fits 1.8x faster), 46 of 48
     against 42 of 48 interleaved with the tree before it, then 24 of 24 (70 of 72); 36 of
-    40 more in a later session (106 of 112).  docs/service.md has the figures.  ``-s`` prints them.
+    40 more in a later session (106 of 112); with the hydraulic fast path's quadratic input
+    channel and directional forgetting, 23 of 24 against 23 of 24 interleaved (the lowest
+    window after the first recovery window a median 0.5 points higher).  docs/service.md
+    has the figures.  ``-s`` prints them.
     """
     metrics, segments, figures = _end_to_end_run(tmp_path)
     assert all(segments) and all(min(f) >= 95.0 for f in segments), figures

@@ -193,21 +193,17 @@ def _request_reidentification(who: dict[str, Any], reason: str) -> Any:
 
 def _what_if(req: WhatIfRequest, sigma: float) -> Any:
     def job(service: Any) -> dict[str, Any]:
-        from ..ident.kautz_oe import filter_states
-
         twin = service.twin
         upd = twin.updater
         if upd is None:
             raise ApiError(409, "the twin has no model yet (identification phase)")
         est = upd.estimator_
-        in_off = float(est.input_offset)
         mode = "input"
         u_ss = None
         if req.setpoint is not None:
-            gain = float(est.model_.dc_gain)
-            if abs(gain) < 1e-12:
+            u_ss = est.steady_input(req.setpoint)
+            if not math.isfinite(u_ss):
                 raise ApiError(409, "the current model has no static gain")
-            u_ss = in_off + (req.setpoint - float(est.offset_)) / gain
             lo, hi = twin.plant.input_limits if twin.config.mpc is None else (
                 twin.config.mpc.u_min, twin.config.mpc.u_max)
             u_ss = float(np.clip(u_ss, lo, hi))
@@ -217,10 +213,8 @@ def _what_if(req: WhatIfRequest, sigma: float) -> Any:
             u = np.asarray(req.u, dtype=float)
         x0 = est.state_
         y = est.simulate(u, x0=x0)
-        X = filter_states(est.basis_, u - in_off, x0)[:-1]
+        X = est.regressors(u, x0)
         P = est.covariance_
-        if P.shape[0] == X.shape[1] + 1:
-            X = np.hstack([X, np.ones((X.shape[0], 1))])
         lower = upper = None
         if math.isfinite(sigma) and P.shape[0] == X.shape[1]:
             spread = np.einsum("ij,jk,ik->i", X, P, X)

@@ -3,7 +3,8 @@ r"""The update module of a fleet: recursive least squares as arrays, re-identifi
 :class:`FleetUpdater` is :class:`~kautztwin.twin.Updater` (synchronous
 accurate path, no DNN estimator) for ``n_assets`` twins of one structure:
 the fast path (:class:`~kautztwin.twin.update.RecursiveKautzEstimator`'s
-recursion with forgetting, trace clamp and symmetrisation), the frozen
+recursion with forgetting - exponential or directional - trace clamp and symmetrisation,
+and its quadratic input channel when the twins have one), the frozen
 prediction judged by the monitor, the buffer of recent samples and the
 recovery policy run as ``(n_assets, ...)`` array operations.  The accurate
 path is the updater's: the same window (:meth:`_prepare`), the same fit
@@ -171,6 +172,12 @@ class FleetUpdater:
         self.delta = u0.delta
         self.lam = float(est0.forgetting)
         self.max_trace = float(est0.max_trace)
+        # the quadratic input channel's bank follows the offset: theta = [c; d; c_q]
+        self.scale = est0.quadratic_scale
+        self.directional = bool(est0.directional)
+        self.q0 = n + 1
+        p = est0.parameters_.size
+        self.n_params = p
         self.horizon = u0.horizon
         self.fast_update = u0.fast_update
         self.reidentify_enabled = u0.reidentify_enabled
@@ -178,9 +185,12 @@ class FleetUpdater:
                      "validation_fraction", "min_improvement", "min_candidate_fit", "min_rate",
                      "max_iter"):
             setattr(self, name, getattr(u0, name))
-        self.theta = np.zeros((N, n + 1))
-        self.P = np.zeros((N, n + 1, n + 1))
-        self.phi = np.zeros((N, n + 1))
+        self.theta = np.zeros((N, p))
+        self.P = np.zeros((N, p, p))
+        self.R: NDArray[np.float64] | None = np.zeros((N, p, p)) if self.directional else None
+        # directional now (exponential from a desync to the next version or the resync)
+        self.dir_on = np.full(N, self.directional)
+        self.phi = np.zeros((N, p))
         self.A = np.zeros((N, n, n))
         self.B = np.zeros((N, n))
         self.wide_basis: list[KautzBasis] = []
@@ -191,10 +201,17 @@ class FleetUpdater:
             est = u.estimator_
             if est.basis_.n_functions != n or not est.fit_offset:
                 raise ValueError("every asset's twin needs the same number of basis functions")
+            if (est.quadratic_scale != self.scale or bool(est.directional) != self.directional
+                    or float(est.forgetting) != self.lam):
+                raise ValueError("every asset's fast path needs the same settings")
             self.theta[i] = est.parameters_
             self.P[i] = est.covariance_
-            self.phi[i, :n] = est.state_
+            if self.R is not None:
+                self.R[i] = np.linalg.inv(self.P[i])
+            state = est.state_
+            self.phi[i, :n] = state[:n]
             self.phi[i, n] = 1.0
+            self.phi[i, self.q0:] = state[n:]
             self.A[i] = np.array(est.basis_.A)
             self.B[i] = np.array(est.basis_.B).reshape(-1)
             self.wide_basis.append(est.basis_)
@@ -267,36 +284,20 @@ class FleetUpdater:
             Monitor results (see :meth:`FleetMonitor.update`).
         """
         n = self.n
-        th, P, phi = self.theta, self.P, self.phi
+        th, phi = self.theta, self.phi
         y_pred = np.einsum("bi,bi->b", th, phi)
         y_frozen = np.einsum("bi,bi->b", self.theta_frozen, phi)
         yv = np.where(clean, y, np.nan)
         upd = clean & ~np.isnan(y) if self.fast_update else np.zeros_like(clean)
         rows = np.flatnonzero(upd)
         if rows.size:
-            Pr, ph = P[rows], phi[rows]
-            Pphi = np.einsum("bij,bj->bi", Pr, ph)
-            denom = self.lam + np.einsum("bi,bi->b", ph, Pphi)
-            ok = (denom > 0) & np.isfinite(denom)
-            g = Pphi / np.where(ok, denom, 1.0)[:, None]
-            err = y[rows] - y_pred[rows]
-            th[rows] = np.where(ok[:, None], th[rows] + g * err[:, None], th[rows])
-            Pn = Pr - g[:, :, None] * Pphi[:, None, :]
-            if self.lam < 1.0:
-                Pn = Pn / self.lam
-            self.n_updates[rows] += ok
-            sym = ok & (self.n_updates[rows] % 64 == 0)
-            if sym.any():
-                Ps = Pn[sym]
-                Pn[sym] = (Ps + np.swapaxes(Ps, 1, 2)) * 0.5
-            tr = np.trace(Pn, axis1=1, axis2=2)
-            clamp = tr > self.max_trace
-            Pn[clamp] *= (self.max_trace / tr[clamp])[:, None, None]
-            reset = ~ok | (~clamp & ~(tr > 0))
-            Pn[reset] = self.delta * np.eye(n + 1)
-            P[rows] = Pn
-        phi[:, :n] = np.einsum("bij,bj->bi", self.A, phi[:, :n]) + self.B * (
-            u - self.input_offset)[:, None]
+            self._correct(rows, y[rows] - y_pred[rows])
+        v = u - self.input_offset
+        phi[:, :n] = np.einsum("bij,bj->bi", self.A, phi[:, :n]) + self.B * v[:, None]
+        if self.scale is not None:
+            q0 = self.q0
+            phi[:, q0:] = np.einsum("bij,bj->bi", self.A, phi[:, q0:]) + self.B * (
+                v * v / self.scale)[:, None]
         # the ring buffer of recent samples
         if self.buf_u is not None:
             self.buf_u[:, self.buf_pos] = u
@@ -304,6 +305,8 @@ class FleetUpdater:
         self.buf_pos = (self.buf_pos + 1) % self.L
         self.buf_n = min(self.buf_n + 1, self.L)
         ev, desync, resync, _ = self.monitor.update(y, y_frozen, clean)
+        self._set_directional(desync, False)
+        self._set_directional(resync, True)
         before = self.k
         self.k += 1
         if self.k // self.horizon != before // self.horizon:
@@ -329,6 +332,61 @@ class FleetUpdater:
             self.rec_next[due] = self.k + self.reid_every
             self.rec_on[due[self.rec_attempts[due] >= self.max_attempts]] = False
         return y_frozen, y_pred, outcomes, ev, desync, resync
+
+    def _correct(self, rows: NDArray[np.intp], err: NDArray[np.float64]) -> None:
+        """The measurement update of the assets ``rows`` (as ``RecursiveKautzEstimator.update``)."""
+        th, phi = self.theta, self.phi
+        Pr, ph = self.P[rows], phi[rows]
+        lam = self.lam
+        dr = self.dir_on[rows]  # these forget along phi, then take a plain update
+        Rn = None
+        if dr.any():
+            Rn = self.R[rows]
+            Rphi = np.einsum("bij,bj->bi", Rn, ph)
+            r = np.einsum("bi,bi->b", ph, Rphi)
+            fo = dr & (r > 0) & np.isfinite(r) if lam < 1.0 else np.zeros(rows.size, dtype=bool)
+            rs = np.where(fo, r, 1.0)
+            Rn = Rn - (np.where(fo, (1.0 - lam) / rs, 0.0)[:, None, None]
+                       * Rphi[:, :, None] * Rphi[:, None, :])
+            Pr = Pr + (np.where(fo, (1.0 - lam) / (lam * rs), 0.0)[:, None, None]
+                       * ph[:, :, None] * ph[:, None, :])
+        Pphi = np.einsum("bij,bj->bi", Pr, ph)
+        denom = np.where(dr, 1.0, lam) + np.einsum("bi,bi->b", ph, Pphi)
+        ok = (denom > 0) & np.isfinite(denom)
+        g = Pphi / np.where(ok, denom, 1.0)[:, None]
+        th[rows] = np.where(ok[:, None], th[rows] + g * err[:, None], th[rows])
+        Pn = Pr - g[:, :, None] * Pphi[:, None, :]
+        if lam < 1.0 and not dr.all():
+            Pn[~dr] /= lam
+        if Rn is not None:
+            Rn = Rn + ph[:, :, None] * ph[:, None, :]
+        self.n_updates[rows] += ok
+        sym = ok & (self.n_updates[rows] % 64 == 0)
+        if sym.any():
+            Ps = Pn[sym]
+            Pn[sym] = (Ps + np.swapaxes(Ps, 1, 2)) * 0.5
+            again = sym & dr
+            if again.any():  # R the inverse of P again
+                Rn[again] = np.linalg.inv(Pn[again])
+        tr = np.trace(Pn, axis1=1, axis2=2)
+        clamp = tr > self.max_trace
+        Pn[clamp] *= (self.max_trace / tr[clamp])[:, None, None]
+        reset = ~ok | (~clamp & ~(tr > 0))
+        Pn[reset] = self.delta * np.eye(self.n_params)
+        self.P[rows] = Pn
+        if Rn is not None:
+            Rn[clamp] *= (tr[clamp] / self.max_trace)[:, None, None]
+            Rn[reset] = np.eye(self.n_params) / self.delta
+            self.R[rows[dr]] = Rn[dr]
+
+    def _set_directional(self, assets: NDArray[np.intp], on: bool) -> None:
+        """Directional (``on``) or exponential forgetting for ``assets`` from now on."""
+        if not self.directional or assets.size == 0:
+            return
+        switch = assets[self.dir_on[assets] != on]
+        self.dir_on[switch] = on
+        if on and switch.size:
+            self.R[switch] = np.linalg.inv(self.P[switch])
 
     # ------------------------------------------------------------------ the accurate path
     def _prepare(self, i: int) -> _ReidJob | ReidOutcome:
@@ -510,6 +568,9 @@ class FleetUpdater:
         yc = Xc[:-1] @ model.coefficients + offset
         ym = filter_states(self.wide_basis[i], v)[:-1] @ self.theta[i, :n].copy() + float(
             self.theta[i, n])
+        if self.scale is not None:
+            ym = ym + filter_states(self.wide_basis[i], v * v / self.scale)[:-1] @ (
+                self.theta[i, self.q0:].copy())
         sl = slice(u.size - n_val, u.size)
         fit_c, fit_m = fit_percent_or_nan(y[sl], yc[sl]), fit_percent_or_nan(y[sl], ym[sl])
         accepted, reason = candidate_verdict(fit_c, fit_m, n_val,
@@ -533,9 +594,15 @@ class FleetUpdater:
         self.B[i] = np.array(md.basis.B).reshape(-1)
         self.theta[i, :n] = np.array(md.coefficients)
         self.theta[i, n] = float(offset)
-        self.P[i] = self.delta * np.eye(n + 1)
+        self.P[i] = self.delta * np.eye(self.n_params)
+        if self.R is not None:
+            self.R[i] = np.eye(self.n_params) / self.delta
+            self.dir_on[i] = True
         self.phi[i, :n] = state
         self.phi[i, n] = 1.0
+        if self.scale is not None:  # the quadratic channel restarts on the window's input
+            self.theta[i, self.q0:] = 0.0
+            self.phi[i, self.q0:] = filter_states(md.basis, v * v / self.scale)[-1]
         self.n_updates[i] = 0
         self.theta_frozen[i] = self.theta[i]
         self.monitor.clear_window(i)
@@ -552,7 +619,8 @@ class FleetUpdater:
     def nbytes(self) -> int:
         """Bytes held in the arrays (the monitor's not included)."""
         return int(sum(a.nbytes for a in (
-            self.theta, self.P, self.phi, self.A, self.B, self.theta_frozen,
+            self.theta, self.P, *(() if self.R is None else (self.R,)), self.phi, self.A,
+            self.B, self.theta_frozen,
             *(() if self.buf_u is None else (self.buf_u,)), self.buf_y, self.n_updates,
             self.rec_on, self.rec_change, self.rec_next,
-            self.rec_attempts, self.model_k, self.core_n)))
+            self.rec_attempts, self.model_k, self.core_n, self.dir_on)))

@@ -414,7 +414,7 @@ class Optimizer:
         slowest = float(np.min(rates)) if rates.size else 1.0
         n = int(np.clip(8.0 / (slowest * updater.dt), 50, self.max_step_samples))
         u0 = updater.input_offset
-        y = est.simulate(np.full(n, u0 + 1.0))
+        y = est.simulate(np.full(n, u0 + 1.0), linear=True)  # the linear part's step
         try:
             return updater.update_from_step_test(y, amplitude=1.0, u0=u0, y0=est.offset_,
                                                  from_live=True)
@@ -460,7 +460,7 @@ class Optimizer:
             return False, math.nan, math.nan
         est = updater.estimator_
         u0 = updater.input_offset
-        live = est.simulate(u)
+        live = est.simulate(u, linear=True)  # what a version would hold
         cur = RecursiveKautzEstimator(
             current.basis, dt=updater.dt, coef_init=current.coefficients,
             offset_init=current_offset, input_offset=u0,

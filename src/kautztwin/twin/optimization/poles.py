@@ -136,7 +136,7 @@ def pole_job(optimizer: Any, updater: Updater, k: int) -> PoleJob | None:
     slowest = float(np.min(rates)) if rates.size else 1.0
     n = int(np.clip(8.0 / (slowest * updater.dt), 50, optimizer.max_step_samples))
     u0 = updater.input_offset
-    y = np.array(est.simulate(np.full(n, u0 + 1.0)), dtype=float)
+    y = np.array(est.simulate(np.full(n, u0 + 1.0), linear=True), dtype=float)
     y.setflags(write=False)
     poles = np.array(updater.core_poles)
     poles.setflags(write=False)

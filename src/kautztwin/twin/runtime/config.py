@@ -416,7 +416,8 @@ class TwinConfig:
                                 y_min=70.0, y_max=130.0, dither=0.02),
                 forgetting=0.98, extra_pole_factor=0.5, monitor_window=150, monitor_stride=25,
                 monitor_threshold=95.0, monitor_consecutive=2, monitor_resync_margin=1.0,
-                updater={"min_rate": 1.0, "max_iter": 20 if quick else 30},
+                updater={"min_rate": 1.0, "max_iter": 20 if quick else 30,
+                         "quadratic_scale": 0.02, "directional_forgetting": True},
                 sensor_scale=1.0, recovery_window=15.0, commit_every=50,
             )
             default_sp: Any = (97.0, 103.0, 100.0)

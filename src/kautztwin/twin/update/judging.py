@@ -232,8 +232,7 @@ class CandidateJudging:
         v = u - self.input_offset
         Xc = filter_states(model.basis, v)
         yc = Xc[:-1] @ model.coefficients + offset
-        est = self.estimator_
-        ym = filter_states(est.basis_, v)[:-1] @ est.coef_ + est.offset_
+        ym = self.estimator_.simulate(u)
         sl = slice(u.size - n_val, u.size)
         return fit_percent_or_nan(y[sl], yc[sl]), fit_percent_or_nan(y[sl], ym[sl]), Xc[-1]
 

@@ -6,6 +6,14 @@ follows :math:`y(k) \approx c^T x_f(k) + d` by recursive least squares with
 exponential forgetting: :math:`O(N^2)` per sample, about 12 microseconds for four
 functions and the offset (``benchmarks/bench_update.py``: 1.9x faster than refitting the
 forgetting factor's memory by least squares at every sample).
+
+Two options serve a nonlinear plant (the hydraulic profile uses both): a **quadratic input
+channel**, a second bank of the same filters driven by :math:`(u - u_0)^2 / s`, so that the
+linear model's local gain may follow the operating point; and **directional forgetting**,
+which forgets only the information along the current regressor, so that directions the
+closed loop does not excite keep theirs instead of winding up.
+:meth:`RecursiveKautzEstimator.set_directional` switches the mode: the twin's
+:class:`~kautztwin.twin.update.Updater` forgets exponentially while it is desynchronised.
 """
 
 from __future__ import annotations
@@ -46,6 +54,29 @@ class RecursiveKautzEstimator:
     clamped to ``max_trace`` (scaling :math:`P` down, counted in
     ``n_clamped_``), and :meth:`reset_covariance` restarts it.
 
+    With ``quadratic_scale`` :math:`s` the regressors gain a second bank of the
+    same filters, :math:`x_q(k+1) = A x_q(k) + B (u(k) - u_0)^2 / s`, and the
+    output model becomes :math:`y \approx c^T x_f + d + c_q^T x_q`: a
+    Hammerstein-type correction whose linearisation at the input :math:`u`
+    has the coefficients :math:`c + 2 (u - u_0) c_q / s`.  ``coef_`` and
+    ``model_`` are the linear part; :attr:`parameters_` is
+    :math:`[c; d; c_q]`.
+
+    With ``directional`` the forgetting acts only along the regressor
+    (Kulhavy's directional forgetting): with the information matrix
+    :math:`R = P^{-1}`, each measurement first removes the share
+    :math:`1 - \lambda` of the information along :math:`\varphi`,
+
+    .. math::
+
+        R \leftarrow R - (1-\lambda)\,\frac{R\varphi\varphi^T R}{\varphi^T R \varphi},
+        \qquad
+        P \leftarrow P + \frac{1-\lambda}{\lambda\,\varphi^T R\varphi}\,\varphi\varphi^T,
+
+    then adds the measurement's (the standard update with :math:`\lambda = 1`).
+    The information in directions the input does not excite is kept, so the
+    covariance cannot wind up there.
+
     Size: the class is over 400 lines for its scikit-learn-style documentation (about
     half of it is docstrings); the recursion itself is :meth:`update`.
 
@@ -74,6 +105,14 @@ class RecursiveKautzEstimator:
         :math:`u - u_0`.  Centring the input keeps the regressors nearly
         orthogonal to the constant of the offset, which the recursion needs
         when the input varies little around a large mean.
+    quadratic_scale : float, optional
+        Input scale :math:`s > 0` of a quadratic input channel (a second filter
+        bank driven by :math:`(u - u_0)^2 / s`; its coefficients start at zero);
+        ``None``: none.  The input's usual amplitude keeps both channels'
+        regressors of one size.
+    directional : bool, default=False
+        Forget only along the regressor (see above) instead of exponentially
+        in every direction.
 
     Attributes
     ----------
@@ -85,8 +124,11 @@ class RecursiveKautzEstimator:
         Current offset ``d`` (0 without ``fit_offset``).
     covariance_ : ndarray of shape (n_params, n_params)
         Current :math:`P` (a copy).
-    state_ : ndarray of shape (n_functions,)
-        Current filter state :math:`x_f(k)` (a copy).
+    state_ : ndarray of shape (n_functions,) or (2 n_functions,)
+        Current filter state :math:`x_f(k)`, followed by :math:`x_q(k)` with
+        the quadratic channel (a copy).
+    quadratic_coef_ : ndarray of shape (n_functions,) or (0,)
+        Coefficients :math:`c_q` of the quadratic channel (empty without it).
     n_updates_ : int
         Measurements used since the last reset.
     n_clamped_ : int
@@ -134,6 +176,8 @@ class RecursiveKautzEstimator:
         coef_init: ArrayLike | None = None,
         offset_init: float = 0.0,
         input_offset: float = 0.0,
+        quadratic_scale: float | None = None,
+        directional: bool = False,
     ) -> None:
         self.poles = poles
         self.dt = dt
@@ -144,6 +188,8 @@ class RecursiveKautzEstimator:
         self.coef_init = coef_init
         self.offset_init = offset_init
         self.input_offset = input_offset
+        self.quadratic_scale = quadratic_scale
+        self.directional = directional
 
     # ------------------------------------------------------------------ setup
     def _check_params(self) -> None:
@@ -155,6 +201,10 @@ class RecursiveKautzEstimator:
             check_positive(getattr(self, name), name)
         for name in ("offset_init", "input_offset"):
             check_number(getattr(self, name), name)
+        if self.quadratic_scale is not None:
+            check_positive(self.quadratic_scale, "quadratic_scale")
+        if not isinstance(self.directional, bool | np.bool_):
+            raise DataError(f"directional must be True or False, got {self.directional!r}")
 
     def reset(self) -> RecursiveKautzEstimator:
         """(Re)initialise: basis, ``theta`` from the initial values, ``P = delta I``, zero state.
@@ -196,19 +246,63 @@ class RecursiveKautzEstimator:
         self._max_trace = float(self.max_trace)
         self._u0 = float(self.input_offset)
         self._offset = bool(self.fit_offset)
-        n_par = n + int(self._offset)
+        self._scale = None if self.quadratic_scale is None else float(self.quadratic_scale)
+        self._directional = bool(self.directional)
+        self._q0 = n + int(self._offset)  # where the quadratic channel starts
+        n_par = self._q0 + (n if self._scale is not None else 0)
         self._theta = np.zeros(n_par)
         self._theta[:n] = coef
         self._d = offset  # the fixed offset when it is not estimated
         if self._offset:
             self._theta[n] = offset
-        self._P = delta * np.eye(n_par)
         self._phi = np.zeros(n_par)
-        self._phi[:n] = state
+        self._phi[:n] = state[:n]
         if self._offset:
             self._phi[n] = 1.0
+        if self._scale is not None and state.size == 2 * n:
+            self._phi[self._q0:] = state[n:]
+        self._set_covariance(delta)
         self.n_updates_ = 0
         self.n_clamped_ = 0
+
+    def _set_covariance(self, delta: float) -> None:
+        n_par = self._theta.size
+        self._P = delta * np.eye(n_par)
+        self._R = np.eye(n_par) / delta if self._directional else None
+
+    def set_directional(self, on: bool) -> None:
+        """Switch between directional and exponential forgetting from now on.
+
+        The estimate and the covariance carry over (switching on rebuilds the
+        information matrix :math:`R = P^{-1}`); a reset or a reseed returns to
+        the ``directional`` parameter.
+
+        Parameters
+        ----------
+        on : bool
+            Forget only along the regressor (``True``) or in every direction.
+        """
+        self._check_is_fitted()
+        if bool(on) == self._directional:
+            return
+        self._directional = bool(on)
+        self._R = None
+        if self._directional:
+            try:
+                self._R = np.linalg.inv(self._P)
+            except np.linalg.LinAlgError:
+                self._set_covariance(float(self.delta))
+
+    @property
+    def directional_(self) -> bool:
+        """Whether the forgetting is directional now (see :meth:`set_directional`)."""
+        self._check_is_fitted()
+        return self._directional
+
+    def _square(self, u: float | NDArray) -> float | NDArray:
+        """The quadratic channel's input ``(u - u0)^2 / s``."""
+        v = u - self._u0
+        return v * v / self._scale
 
     def _check_is_fitted(self) -> None:
         if not hasattr(self, "_theta"):
@@ -234,8 +328,10 @@ class RecursiveKautzEstimator:
             discrete basis with the same ``dt``.
         offset : float, default=0.0
             Its offset ``d``.
-        state : array-like of shape (n_functions,), optional
-            The new basis' filter state at the current sample (zeros when omitted).
+        state : array-like of shape (n_functions,) or (2 n_functions,), optional
+            The new basis' filter state at the current sample (zeros when omitted);
+            with the quadratic channel, its bank's state may follow (else zeros).
+            The quadratic channel's coefficients restart at zero.
         delta : float, optional
             New initial covariance scale; ``self.delta`` when omitted.
 
@@ -248,7 +344,7 @@ class RecursiveKautzEstimator:
         md = discretize_model(model, float(self.dt))
         n = md.n_functions
         x = np.zeros(n) if state is None else np.asarray(state, dtype=float)
-        if x.shape != (n,):
+        if x.shape != (n,) and not (self.quadratic_scale is not None and x.shape == (2 * n,)):
             raise DimensionError(f"state has shape {x.shape} but the model has {n} functions")
         d = float(self.delta) if delta is None else float(delta)
         self._install(md.basis, np.array(md.coefficients), float(offset), x, d)
@@ -318,30 +414,80 @@ class RecursiveKautzEstimator:
         if not self._offset:
             yhat += self._d
         if y == y:  # not NaN
-            P = self._P
-            Pphi = P @ phi
-            denom = self._lam + float(phi @ Pphi)
-            if denom > 0 and math.isfinite(denom):
-                g = Pphi / denom
-                theta += g * (float(y) - yhat)
-                P -= np.outer(g, Pphi)
-                if self._lam < 1.0:
-                    P /= self._lam
-                self.n_updates_ += 1
-                if self.n_updates_ % 64 == 0:
-                    P += P.T
-                    P *= 0.5
-                tr = float(P.trace())
-                if tr > self._max_trace:
-                    P *= self._max_trace / tr
-                    self.n_clamped_ += 1
-                elif not tr > 0:  # lost positive definiteness (rounding): restart
-                    self.reset_covariance()
+            if self._directional:
+                self._correct_directional(float(y) - yhat)
             else:
-                self.reset_covariance()
-        n = self._n
-        phi[:n] = self._A @ phi[:n] + self._B * (u - self._u0)
+                self._correct(float(y) - yhat)
+        self._advance_filters(u)
         return yhat
+
+    def _correct(self, error: float) -> None:
+        """The measurement update with exponential forgetting."""
+        phi, P = self._phi, self._P
+        Pphi = P @ phi
+        denom = self._lam + float(phi @ Pphi)
+        if not (denom > 0 and math.isfinite(denom)):
+            self.reset_covariance()
+            return
+        g = Pphi / denom
+        self._theta += g * error
+        P -= np.outer(g, Pphi)
+        if self._lam < 1.0:
+            P /= self._lam
+        self.n_updates_ += 1
+        if self.n_updates_ % 64 == 0:
+            P += P.T
+            P *= 0.5
+        self._clamp_trace()
+
+    def _correct_directional(self, error: float) -> None:
+        """The measurement update with directional forgetting (``P`` and ``R = P^-1`` kept)."""
+        phi, P, R = self._phi, self._P, self._R
+        Rphi = R @ phi
+        r = float(phi @ Rphi)
+        if self._lam < 1.0 and r > 0 and math.isfinite(r):
+            R -= np.outer(Rphi, Rphi) * ((1.0 - self._lam) / r)
+            P += np.outer(phi, phi) * ((1.0 - self._lam) / (self._lam * r))
+        Pphi = P @ phi
+        denom = 1.0 + float(phi @ Pphi)
+        if not (denom > 0 and math.isfinite(denom)):
+            self.reset_covariance()
+            return
+        g = Pphi / denom
+        self._theta += g * error
+        P -= np.outer(g, Pphi)
+        R += np.outer(phi, phi)
+        self.n_updates_ += 1
+        if self.n_updates_ % 64 == 0:  # symmetric, and R the inverse of P again
+            P += P.T
+            P *= 0.5
+            try:
+                self._R = np.linalg.inv(P)
+            except np.linalg.LinAlgError:
+                self.reset_covariance()
+                return
+        self._clamp_trace()
+
+    def _clamp_trace(self) -> None:
+        tr = float(self._P.trace())
+        if tr > self._max_trace:
+            self._P *= self._max_trace / tr
+            if self._R is not None:
+                self._R *= tr / self._max_trace
+            self.n_clamped_ += 1
+        elif not tr > 0:  # lost positive definiteness (rounding): restart
+            self.reset_covariance()
+
+    def _advance_filters(self, u: float, n_steps: int = 1) -> None:
+        """Drive the filter bank(s) with ``u`` held over ``n_steps`` samples."""
+        n, phi = self._n, self._phi
+        v = u - self._u0
+        w = None if self._scale is None else v * v / self._scale
+        q0 = self._q0
+        for _ in range(int(n_steps)):
+            phi[:n] = self._A @ phi[:n] + self._B * v
+            if w is not None:
+                phi[q0:] = self._A @ phi[q0:] + self._B * w
 
     def revise_last_input(self, u_used: float, u_applied: float) -> None:
         """Correct the last step's input: the plant applied ``u_applied``, not ``u_used``.
@@ -361,6 +507,9 @@ class RecursiveKautzEstimator:
         delta = float(u_applied) - float(u_used)
         if math.isfinite(delta) and delta != 0.0:
             self._phi[:self._n] += self._B * delta
+            if self._scale is not None:
+                dq = self._square(float(u_applied)) - self._square(float(u_used))
+                self._phi[self._q0:] += self._B * dq
 
     def advance(self, u: float, n_steps: int = 1) -> None:
         """Advance the filter with input ``u`` without using a measurement.
@@ -373,10 +522,7 @@ class RecursiveKautzEstimator:
             Number of samples.
         """
         self._check_is_fitted()
-        n = self._n
-        v = float(u) - self._u0
-        for _ in range(int(n_steps)):
-            self._phi[:n] = self._A @ self._phi[:n] + self._B * v
+        self._advance_filters(float(u), n_steps)
 
     def reset_covariance(self, delta: float | None = None) -> None:
         """Restart the covariance at ``delta * I`` (``self.delta`` when omitted).
@@ -388,7 +534,7 @@ class RecursiveKautzEstimator:
         """
         self._check_is_fitted()
         d = float(self.delta) if delta is None else float(delta)
-        self._P = d * np.eye(self._theta.size)
+        self._set_covariance(d)
 
     def partial_fit(self, u: ArrayLike, y: ArrayLike) -> RecursiveKautzEstimator:
         """Run :meth:`update` over a batch of samples (continuing the recursion).
@@ -443,31 +589,108 @@ class RecursiveKautzEstimator:
         """
         return self.reset().partial_fit(u, y)
 
-    def simulate(self, u: ArrayLike, x0: ArrayLike | None = None) -> NDArray[np.float64]:
-        """Output of the current model for an input sequence (parameters frozen).
+    def regressors(
+        self, u: ArrayLike, x0: ArrayLike | None = None, *, final: bool = False
+    ) -> NDArray[np.float64]:
+        """The regressors :math:`\varphi(k)` of an input sequence, laid out as :attr:`parameters_`.
 
         Parameters
         ----------
         u : array-like of shape (n_samples,)
             Inputs.
-        x0 : array-like of shape (n_functions,), optional
-            Initial filter state (zeros when omitted: at rest at ``input_offset``;
-            the estimator's own state is untouched).
+        x0 : array-like, optional
+            Initial filter state, shaped as :attr:`state_` (zeros when omitted:
+            at rest at ``input_offset``; the estimator's own state is untouched).
+        final : bool, default=False
+            Also return the row of the sample after the last (the state the
+            sequence leaves).
 
         Returns
         -------
-        ndarray of shape (n_samples,)
-            ``y(k) = c^T x_f(k) + d`` for ``k = 0 .. n_samples - 1``, the filter
-            driven by ``u - input_offset``.
+        ndarray of shape (n_samples, n_params) or (n_samples + 1, n_params)
+            Row ``k``: the filter states at sample ``k`` (driven by the inputs
+            before it), the offset's 1 and the quadratic channel's states.
         """
         if not hasattr(self, "_theta"):
             self.reset()
         u = np.asarray(u, dtype=float)
         if u.ndim != 1:
             raise DimensionError(f"u must be 1-D, got shape {u.shape}")
-        x = None if x0 is None else np.asarray(x0, dtype=float)
-        X = filter_states(self.basis_, u - float(self.input_offset), x)[:-1]
-        return X @ self.coef_ + self.offset_
+        n, q0 = self._n, self._q0
+        x = None if x0 is None else np.asarray(x0, dtype=float).reshape(-1)
+        size = n if self._scale is None else 2 * n
+        if x is not None and x.shape != (size,):
+            raise DimensionError(f"x0 has shape {x.shape}; the filter state has {size} entries")
+        rows = u.size + 1 if final else u.size
+        X = np.empty((rows, self._theta.size))
+        X[:, :n] = filter_states(self.basis_, u - self._u0, None if x is None else x[:n])[:rows]
+        if self._offset:
+            X[:, n] = 1.0
+        if self._scale is not None:
+            xq = None if x is None else x[n:]
+            X[:, q0:] = filter_states(self.basis_, self._square(u), xq)[:rows]
+        return X
+
+    def simulate(
+        self, u: ArrayLike, x0: ArrayLike | None = None, *, linear: bool = False
+    ) -> NDArray[np.float64]:
+        """Output of the current model for an input sequence (parameters frozen).
+
+        Parameters
+        ----------
+        u : array-like of shape (n_samples,)
+            Inputs.
+        x0 : array-like, optional
+            Initial filter state, shaped as :attr:`state_` (zeros when omitted:
+            at rest at ``input_offset``; the estimator's own state is untouched).
+        linear : bool, default=False
+            Leave the quadratic channel out: the linear part ``c``, ``d`` alone
+            (what :attr:`model_` and a model version hold; a virtual step test).
+
+        Returns
+        -------
+        ndarray of shape (n_samples,)
+            ``y(k) = c^T x_f(k) + d (+ c_q^T x_q(k))`` for ``k = 0 .. n_samples - 1``,
+            the filters driven by ``u - input_offset``.
+        """
+        X = self.regressors(u, x0)
+        theta = self._theta
+        if linear and self._scale is not None:
+            X, theta = X[:, :self._q0], theta[:self._q0]
+        out = X @ theta
+        return out if self._offset else out + self._d
+
+    def steady_input(self, y: float) -> float:
+        """The constant input whose steady output is ``y`` (the static map inverted).
+
+        Linear: :math:`u_0 + (y - d)/g` with the static gain :math:`g = c^T (I-A)^{-1} B`.
+        With the quadratic channel, the root of :math:`d + g v + g_q v^2 / s = y` nearest
+        the linear answer (the linear answer when there is none).
+
+        Parameters
+        ----------
+        y : float
+            Steady output.
+
+        Returns
+        -------
+        float
+            The input; NaN when the linear part has no static gain.
+        """
+        self._check_is_fitted()
+        n = self._n
+        dc = np.linalg.solve(np.eye(n) - self._A, self._B)
+        g = float(self.coef_ @ dc)
+        if abs(g) < 1e-12:
+            return math.nan
+        v = (float(y) - self.offset_) / g
+        if self._scale is not None:
+            a = float(self.quadratic_coef_ @ dc) / self._scale
+            disc = g * g + 4.0 * a * (float(y) - self.offset_)
+            if abs(a) > 1e-12 and disc >= 0.0:
+                roots = (-g + np.array([1.0, -1.0]) * math.sqrt(disc)) / (2.0 * a)
+                v = float(roots[np.argmin(np.abs(roots - v))])
+        return self._u0 + v
 
     # ------------------------------------------------------------------ results
     @property
@@ -490,17 +713,32 @@ class RecursiveKautzEstimator:
 
     @property
     def state_(self) -> NDArray[np.float64]:
-        """Current filter state ``x_f(k)`` (a copy)."""
+        """Current filter state ``x_f(k)``, then ``x_q(k)`` with the quadratic channel (a copy)."""
         self._check_is_fitted()
-        return self._phi[: self._n].copy()
+        if self._scale is None:
+            return self._phi[: self._n].copy()
+        return np.concatenate([self._phi[: self._n], self._phi[self._q0:]])
+
+    @property
+    def quadratic_coef_(self) -> NDArray[np.float64]:
+        """Coefficients ``c_q`` of the quadratic channel (a copy; empty without it)."""
+        self._check_is_fitted()
+        return self._theta[self._q0:].copy()
 
     @property
     def model_(self) -> KautzModel:
-        """The current model ``c`` on :attr:`basis_` (a new immutable object)."""
+        """The current linear model ``c`` on :attr:`basis_` (a new immutable object).
+
+        The quadratic channel, when there is one, is not part of it.
+        """
         return KautzModel(self.basis_, self.coef_)
 
     def __repr__(self) -> str:
+        extra = "" if self.quadratic_scale is None else (
+            f", quadratic_scale={self.quadratic_scale}")
+        if self.directional:
+            extra += ", directional=True"
         return (
             f"RecursiveKautzEstimator(n_functions={getattr(self, '_n', '?')}, dt={self.dt}, "
-            f"forgetting={self.forgetting})"
+            f"forgetting={self.forgetting}{extra})"
         )

@@ -145,6 +145,20 @@ class Updater(StepTestPath, AccuratePath):
         (a slower extra pole for plants that slow down) without waiting for a
         re-identification.  Appended blocks leave the model's own basis
         functions unchanged.
+    quadratic_scale : float, optional
+        A quadratic input channel in the fast path (see
+        :class:`RecursiveKautzEstimator`): a second bank of its filters driven by
+        :math:`(u - u_0)^2 / s`, for a plant whose gain moves with the operating
+        point.  Its coefficients restart at zero with every model version; its
+        filter state is recomputed over the same input as the linear bank's.  Model versions,
+        the controller and the exports hold the linear part.  ``None``: none.
+    directional_forgetting : bool, default=False
+        Forget only along the regressor (see :class:`RecursiveKautzEstimator`)
+        while the twin is in sync: the closed loop's unexcited directions, the
+        quadratic channel's among them, keep their information instead of
+        winding up.  From a desynchronisation to the next model version or the
+        resync the plant is changing in every direction, and the forgetting is
+        exponential.
     monitor : SyncMonitor, optional
         The synchronisation monitor; ``SyncMonitor()`` when omitted.
     sanitizer : SampleSanitizer, optional
@@ -357,6 +371,8 @@ class Updater(StepTestPath, AccuratePath):
         delta: float = 1.0,
         max_trace: float = 1e4,
         extra_poles: ArrayLike | None = None,
+        quadratic_scale: float | None = None,
+        directional_forgetting: bool = False,
         monitor: SyncMonitor | None = None,
         sanitizer: SampleSanitizer | None = None,
         horizon: int | None = None,
@@ -408,6 +424,7 @@ class Updater(StepTestPath, AccuratePath):
         self.estimator_ = RecursiveKautzEstimator(
             wide.basis, dt=dt, forgetting=forgetting, delta=delta, max_trace=max_trace,
             coef_init=wide.coefficients, offset_init=float(offset), input_offset=self.input_offset,
+            quadratic_scale=quadratic_scale, directional=bool(directional_forgetting),
         ).reset()
         self.monitor = monitor if monitor is not None else SyncMonitor()
         if not isinstance(self.monitor, SyncMonitor):
@@ -676,6 +693,9 @@ class Updater(StepTestPath, AccuratePath):
             self._theta_frozen = self.estimator_.parameters_
 
     def _on_event(self, ev: SyncEvent) -> None:
+        est = self.estimator_
+        if est.directional and ev.kind in ("desync", "resync"):
+            est.set_directional(ev.kind == "resync")
         self.events.append(ev)
         self._log(ev.kind, ev.message, ev.k, ev.t, ev.payload())
         self._recovery_on_event(ev.kind)
@@ -725,6 +745,10 @@ class Updater(StepTestPath, AccuratePath):
             state = filter_states(wide.basis, v)[-1]
         if live is not None:
             wide, offset = self._carry_over(live[0], wide.basis), live[1]
+        if est.quadratic_scale is not None:  # its bank's state over the same input
+            v = (u if u_now is None else u_now) - self.input_offset
+            xq = filter_states(wide.basis, v * v / est.quadratic_scale)[-1]
+            state = np.concatenate([state, xq])
         est.reseed(wide, offset=offset, state=state, delta=self.delta)
         self._theta_frozen = self.estimator_.parameters_
         self.monitor.clear_window()
