@@ -14,6 +14,9 @@ which forgets only the information along the current regressor, so that directio
 closed loop does not excite keep theirs instead of winding up.
 :meth:`RecursiveKautzEstimator.set_directional` switches the mode: the twin's
 :class:`~kautztwin.twin.update.Updater` forgets exponentially while it is desynchronised.
+
+Size: the module passes 600 lines because it is the one class, and the class carries its
+scikit-learn-style documentation (about half of its lines are docstrings) for both options.
 """
 
 from __future__ import annotations
@@ -78,7 +81,7 @@ class RecursiveKautzEstimator:
     covariance cannot wind up there.
 
     Size: the class is over 400 lines for its scikit-learn-style documentation (about
-    half of it is docstrings); the recursion itself is :meth:`update`.
+    half of it is docstrings); the recursion itself is :meth:`update` and ``_correct``.
 
     Parameters
     ----------
@@ -414,58 +417,47 @@ class RecursiveKautzEstimator:
         if not self._offset:
             yhat += self._d
         if y == y:  # not NaN
-            if self._directional:
-                self._correct_directional(float(y) - yhat)
-            else:
-                self._correct(float(y) - yhat)
+            self._correct(float(y) - yhat)
         self._advance_filters(u)
         return yhat
 
     def _correct(self, error: float) -> None:
-        """The measurement update with exponential forgetting."""
-        phi, P = self._phi, self._P
+        """The measurement update, with exponential or directional forgetting.
+
+        Directional: the information along ``phi`` first loses the share ``1 - lambda``
+        (``R`` and ``P`` by rank-one updates), then the measurement's is added as
+        without forgetting; ``R = P^-1`` is rebuilt every 64 updates.
+        """
+        phi, P, R = self._phi, self._P, self._R
+        lam, directional = self._lam, self._directional
+        if directional and lam < 1.0:
+            Rphi = R @ phi
+            r = float(phi @ Rphi)
+            if r > 0 and math.isfinite(r):
+                R -= np.outer(Rphi, Rphi) * ((1.0 - lam) / r)
+                P += np.outer(phi, phi) * ((1.0 - lam) / (lam * r))
         Pphi = P @ phi
-        denom = self._lam + float(phi @ Pphi)
+        denom = (1.0 if directional else lam) + float(phi @ Pphi)
         if not (denom > 0 and math.isfinite(denom)):
             self.reset_covariance()
             return
         g = Pphi / denom
         self._theta += g * error
         P -= np.outer(g, Pphi)
-        if self._lam < 1.0:
-            P /= self._lam
+        if directional:
+            R += np.outer(phi, phi)
+        elif lam < 1.0:
+            P /= lam
         self.n_updates_ += 1
         if self.n_updates_ % 64 == 0:
             P += P.T
             P *= 0.5
-        self._clamp_trace()
-
-    def _correct_directional(self, error: float) -> None:
-        """The measurement update with directional forgetting (``P`` and ``R = P^-1`` kept)."""
-        phi, P, R = self._phi, self._P, self._R
-        Rphi = R @ phi
-        r = float(phi @ Rphi)
-        if self._lam < 1.0 and r > 0 and math.isfinite(r):
-            R -= np.outer(Rphi, Rphi) * ((1.0 - self._lam) / r)
-            P += np.outer(phi, phi) * ((1.0 - self._lam) / (self._lam * r))
-        Pphi = P @ phi
-        denom = 1.0 + float(phi @ Pphi)
-        if not (denom > 0 and math.isfinite(denom)):
-            self.reset_covariance()
-            return
-        g = Pphi / denom
-        self._theta += g * error
-        P -= np.outer(g, Pphi)
-        R += np.outer(phi, phi)
-        self.n_updates_ += 1
-        if self.n_updates_ % 64 == 0:  # symmetric, and R the inverse of P again
-            P += P.T
-            P *= 0.5
-            try:
-                self._R = np.linalg.inv(P)
-            except np.linalg.LinAlgError:
-                self.reset_covariance()
-                return
+            if directional:  # R the inverse of P again
+                try:
+                    self._R = np.linalg.inv(P)
+                except np.linalg.LinAlgError:
+                    self.reset_covariance()
+                    return
         self._clamp_trace()
 
     def _clamp_trace(self) -> None:
@@ -638,11 +630,8 @@ class RecursiveKautzEstimator:
 
         Parameters
         ----------
-        u : array-like of shape (n_samples,)
-            Inputs.
-        x0 : array-like, optional
-            Initial filter state, shaped as :attr:`state_` (zeros when omitted:
-            at rest at ``input_offset``; the estimator's own state is untouched).
+        u, x0
+            Inputs and initial filter state, as in :meth:`regressors`.
         linear : bool, default=False
             Leave the quadratic channel out: the linear part ``c``, ``d`` alone
             (what :attr:`model_` and a model version hold; a virtual step test).
