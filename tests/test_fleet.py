@@ -74,8 +74,9 @@ def _compare(n_assets: int, duration: float) -> None:
         # above): a bound derived from that tolerance, not a tolerance of its own.  Measured
         # with the hydraulic profile's directional forgetting and quadratic channel: 2.3e-3
         # points in one window (a fit of 59 %, inside a recovery) of one asset of 50, whose
-        # third version differed at the fit's resolution (2.5e-6 relative in y_pred); the
-        # other 49 within 6.2e-10 points
+        # third version differed at the fit's resolution (2.5e-6 relative in y_pred: its
+        # predictions agree within 1e-14 until sample 700, the first after that version was
+        # adopted at 699, and differ from there on); the other 49 within 6.2e-10 points
         for kk, fa, fb in zip(k[~before], f[~before], fits.fit[~before], strict=True):
             w = slice(kk - window + 1, kk + 1)
             y_w, p_w = run.arrays["y"][w], run.arrays["y_pred"][w]

@@ -568,8 +568,9 @@ class FleetUpdater:
         yc = Xc[:-1] @ model.coefficients + offset
         ym = filter_states(self.wide_basis[i], v)[:-1] @ self.theta[i, :n].copy() + float(
             self.theta[i, n])
-        if self.scale is not None:
-            ym = ym + filter_states(self.wide_basis[i], v * v / self.scale)[:-1] @ (
+        w = None if self.scale is None else v * v / self.scale  # the quadratic bank's input
+        if w is not None:
+            ym = ym + filter_states(self.wide_basis[i], w)[:-1] @ (
                 self.theta[i, self.q0:].copy())
         sl = slice(u.size - n_val, u.size)
         fit_c, fit_m = fit_percent_or_nan(y[sl], yc[sl]), fit_percent_or_nan(y[sl], ym[sl])
@@ -600,9 +601,9 @@ class FleetUpdater:
             self.dir_on[i] = True
         self.phi[i, :n] = state
         self.phi[i, n] = 1.0
-        if self.scale is not None:  # the quadratic channel restarts on the window's input
+        if w is not None:  # the quadratic channel restarts on the window's input
             self.theta[i, self.q0:] = 0.0
-            self.phi[i, self.q0:] = filter_states(md.basis, v * v / self.scale)[-1]
+            self.phi[i, self.q0:] = filter_states(md.basis, w)[-1]
         self.n_updates[i] = 0
         self.theta_frozen[i] = self.theta[i]
         self.monitor.clear_window(i)

@@ -302,8 +302,19 @@ class RecursiveKautzEstimator:
         self._check_is_fitted()
         return self._directional
 
-    def _square(self, u: float | NDArray) -> float | NDArray:
-        """The quadratic channel's input ``(u - u0)^2 / s``."""
+    def quadratic_input(self, u: float | NDArray) -> float | NDArray:
+        """The quadratic channel's input ``(u - u0)^2 / s`` (with ``quadratic_scale`` only).
+
+        Parameters
+        ----------
+        u : float or ndarray
+            Plant inputs.
+
+        Returns
+        -------
+        float or ndarray
+            What drives the quadratic bank.
+        """
         v = u - self._u0
         return v * v / self._scale
 
@@ -474,7 +485,7 @@ class RecursiveKautzEstimator:
         """Drive the filter bank(s) with ``u`` held over ``n_steps`` samples."""
         n, phi = self._n, self._phi
         v = u - self._u0
-        w = None if self._scale is None else v * v / self._scale
+        w = None if self._scale is None else self.quadratic_input(u)
         q0 = self._q0
         for _ in range(int(n_steps)):
             phi[:n] = self._A @ phi[:n] + self._B * v
@@ -500,7 +511,7 @@ class RecursiveKautzEstimator:
         if math.isfinite(delta) and delta != 0.0:
             self._phi[:self._n] += self._B * delta
             if self._scale is not None:
-                dq = self._square(float(u_applied)) - self._square(float(u_used))
+                dq = self.quadratic_input(float(u_applied)) - self.quadratic_input(float(u_used))
                 self._phi[self._q0:] += self._B * dq
 
     def advance(self, u: float, n_steps: int = 1) -> None:
@@ -620,7 +631,7 @@ class RecursiveKautzEstimator:
             X[:, n] = 1.0
         if self._scale is not None:
             xq = None if x is None else x[n:]
-            X[:, q0:] = filter_states(self.basis_, self._square(u), xq)[:rows]
+            X[:, q0:] = filter_states(self.basis_, self.quadratic_input(u), xq)[:rows]
         return X
 
     def simulate(

@@ -740,14 +740,13 @@ class Updater(StepTestPath, AccuratePath):
         self.digital_model = dm
         self._core_n = model.n_functions
         wide = self._widen(model)
+        u_in = u if u_now is None else u_now
         if wide is not model or u_now is not None:
-            v = (u if u_now is None else u_now) - self.input_offset
-            state = filter_states(wide.basis, v)[-1]
+            state = filter_states(wide.basis, u_in - self.input_offset)[-1]
         if live is not None:
             wide, offset = self._carry_over(live[0], wide.basis), live[1]
         if est.quadratic_scale is not None:  # its bank's state over the same input
-            v = (u if u_now is None else u_now) - self.input_offset
-            xq = filter_states(wide.basis, v * v / est.quadratic_scale)[-1]
+            xq = filter_states(wide.basis, est.quadratic_input(u_in))[-1]
             state = np.concatenate([state, xq])
         est.reseed(wide, offset=offset, state=state, delta=self.delta)
         self._theta_frozen = self.estimator_.parameters_
