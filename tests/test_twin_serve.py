@@ -482,7 +482,7 @@ def test_link_faults_server_stopped_then_frozen(tmp_path):
           f"{stop['sync_fit']} %")
     assert 0 <= reconnect_a < 2.0 and 0 <= resume_b < 2.0
     assert stopped_at <= link["start"] < back_a - 4.0 and stale["start"] < frozen_at + 1.0
-    # the sync fit recovers: a 3 s window after the faults scores >= 95 % again
+    # the sync fit recovers: the 3 s windows after the faults score >= 95 % again
     from kautztwin.metrics import fit_percent_or_nan
 
     with SQLiteHistory(store) as h:
@@ -493,7 +493,9 @@ def test_link_faults_server_stopped_then_frozen(tmp_path):
     fits = [fit_percent_or_nan(m.y[i:i + win], y_pred[i:i + win])
             for i in range(after, len(m.y) - win + 1, win // 3)]
     print(f"rolling sync fit after the faults: {np.round(fits, 1).tolist()}")
-    assert fits and np.nanmax(fits) >= 95.0
+    # ... and stays: most windows and the last one at 95 % or more (measured: the first
+    # window 92.9 to 97.6 %, every later one 95.3 to 98.2 %, in four runs)
+    assert fits and np.nanmedian(fits) >= 95.0 and fits[-1] >= 95.0, fits
     # while the link was down or the data stale the twin ran on its model (NaN samples, flagged)
     # and the safe input policy reached the frozen (still writable) server
     history = list(server.history)
