@@ -403,8 +403,11 @@ def test_end_to_end_sync_fit_after_each_recovery_window(tmp_path):
     against 42 of 48 interleaved with the tree before it, then 24 of 24 (70 of 72); 36 of
     40 more in a later session (106 of 112); with the hydraulic fast path's quadratic input
     channel and directional forgetting, 23 of 24 against 23 of 24 interleaved (the lowest
-    window after the first recovery window a median 0.5 points higher).  docs/service.md
-    has the figures.  ``-s`` prints them.
+    window after the first recovery window a median 0.5 points higher); with the closed
+    loop's start as a new regime (``Updater.enter_new_regime``), 21 of 24 against 23 of 24
+    interleaved, the arms' data differing: replayed through both trees, the same 48 runs
+    had their lowest window before the first drift raised in 42 and lowered in 6.
+    docs/service.md has the figures.  ``-s`` prints them.
     """
     metrics, segments, figures = _end_to_end_run(tmp_path)
     assert all(segments) and all(min(f) >= 95.0 for f in segments), figures

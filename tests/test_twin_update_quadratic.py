@@ -273,3 +273,99 @@ def test_updater_forgets_exponentially_while_desynchronised():
     assert "desync" in kinds and "resync" in kinds
     assert all(modes[:800]) and not all(modes[800:]) and modes[-1]  # in sync again at the end
     upd.close()
+
+
+def _regime_updater(**kw) -> Updater:
+    from kautztwin.twin.update import SyncMonitor
+
+    model = kt.KautzModel(kt.KautzBasis(POLES, dt=DT, delayed=True), C)
+    kw.setdefault("directional_forgetting", True)
+    return Updater(model, dt=DT, offset=D, input_offset=U0, forgetting=0.98,
+                   quadratic_scale=SCALE, reidentify=False,
+                   monitor=SyncMonitor(window=100, stride=20, threshold=95.0,
+                                       resync_margin=1.0), **kw)
+
+
+def test_a_new_regime_forgets_exponentially_until_a_window_of_its_own_fits():
+    u = _levels(900, seed=14)
+    y = _hammerstein(u, C, CQ, D)  # the model's regime: every window fits (100 % in the end)
+    upd = _regime_updater()
+    for k in range(300):
+        upd.step(u[k], y[k])
+    fits_before = upd.monitor.n_fits
+    assert upd.estimator_.directional_ and fits_before > 0 and upd.monitor.fit >= 96.0
+    upd.enter_new_regime()
+    assert not upd.estimator_.directional_
+    modes, n_fits = [], []
+    for k in range(300, 600):
+        upd.step(u[k], y[k])
+        modes.append(upd.estimator_.directional_)
+        n_fits.append(upd.monitor.n_fits)
+    # windows completed in the regime's first 99 samples hold older samples: they do not
+    # count, however well they fit; the first window of 100 samples of its own (completed
+    # at the 100th or, with the stride, up to 19 samples later) ends it
+    first_own = next(j for j in range(99, 300) if n_fits[j] > n_fits[j - 1])
+    assert first_own < 120 and any(n_fits[j] > n_fits[j - 1] for j in range(1, 99))
+    assert not any(modes[:first_own]) and all(modes[first_own:])
+    upd.close()
+
+
+def test_a_new_regime_that_does_not_fit_stays_exponential_and_a_desync_takes_it_over():
+    u = _levels(1400, seed=15)
+    # the new regime's gain is 4.5 % higher: the windows fit about 95.5 % at first,
+    # then a bent and doubled gain makes the twin desynchronise
+    y = np.concatenate([_hammerstein(u[:400], C, 0 * CQ, D),
+                        _hammerstein(u, 1.045 * C, 0 * CQ, D)[400:700],
+                        _hammerstein(u, 2.0 * C, CQ, D)[700:]])
+    upd = _regime_updater(fast_update=False)  # frozen parameters: the fits stay where they are
+    for k in range(400):
+        upd.step(u[k], y[k])
+    upd.enter_new_regime()
+    fits, modes, kinds = [], [], []
+    for k in range(400, u.size):
+        r = upd.step(u[k], y[k])
+        kinds += [ev.kind for ev in r.events]
+        fits.append(upd.monitor.fit)
+        modes.append(upd.estimator_.directional_)
+    own = np.array(fits[120:300])
+    assert np.all(own < 96.0) and np.median(own) >= 95.0  # never at the resync level ...
+    assert upd.events[0].k >= 700  # ... nor desynchronised before the bend ...
+    assert not any(modes[:300]) and upd.monitor.n_fits > 10  # ... so exponential throughout
+    assert kinds[0] == "desync" and upd._regime_left is None  # the recovery owns it now
+    upd.close()
+
+
+def test_a_new_regime_with_a_fresh_covariance_and_without_directional_forgetting():
+    u = _levels(300, seed=16)
+    y = _hammerstein(u, C, CQ, D)
+    upd = _regime_updater()
+    for k in range(300):
+        upd.step(u[k], y[k])
+    upd.enter_new_regime(fresh_covariance=True)
+    np.testing.assert_array_equal(upd.estimator_.covariance_, upd.delta * np.eye(5))
+    plain = _regime_updater(directional_forgetting=False)
+    for k in range(300):
+        plain.step(u[k], y[k])
+    before = plain.estimator_.covariance_
+    plain.enter_new_regime()  # exponential forgetting already: nothing to change
+    assert not plain.estimator_.directional_ and plain._regime_left is None
+    np.testing.assert_array_equal(plain.estimator_.covariance_, before)
+    upd.close()
+    plain.close()
+
+
+def test_a_new_version_ends_a_new_regime():
+    u = _levels(400, seed=17)
+    y = _hammerstein(u, C, CQ, D)
+    upd = _regime_updater()
+    for k in range(200):
+        upd.step(u[k], y[k])
+    upd.enter_new_regime()
+    for k in range(200, 230):
+        upd.step(u[k], y[k])
+    assert not upd.estimator_.directional_ and upd._regime_left is not None
+    u_buf, _ = upd.recent_samples()
+    model = upd.digital_model.model
+    upd._adopt("test", model, D, 99.0, u_buf, filter_states(model.basis, u_buf - U0)[-1], None)
+    assert upd.estimator_.directional_ and upd._regime_left is None
+    upd.close()

@@ -719,6 +719,7 @@ class Fleet:
                     self._add_fits(j, ev, upd.monitor.fit[ev])
                 self.outcomes.extend(outcomes)
             self._version = np.array([dm.version for dm in upd.digital_models], dtype=np.int64)
+            upd.enter_new_regime()  # the closed loop's start (as DigitalTwin's)
             u_op = self._v_prev
             y_op = np.where(clean_now, y_now, upd.predict())
             del self._ident_y, self._ident_clean

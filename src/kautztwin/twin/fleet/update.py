@@ -190,6 +190,9 @@ class FleetUpdater:
         self.R: NDArray[np.float64] | None = np.zeros((N, p, p)) if self.directional else None
         # directional now (exponential from a desync to the next version or the resync)
         self.dir_on = np.full(N, self.directional)
+        # monitored samples left before a new regime's first own window (-1: none; see
+        # enter_new_regime)
+        self.regime_left = np.full(N, -1, dtype=np.int64)
         self.phi = np.zeros((N, p))
         self.A = np.zeros((N, n, n))
         self.B = np.zeros((N, n))
@@ -305,6 +308,9 @@ class FleetUpdater:
         self.buf_pos = (self.buf_pos + 1) % self.L
         self.buf_n = min(self.buf_n + 1, self.L)
         ev, desync, resync, _ = self.monitor.update(y, y_frozen, clean)
+        if self.directional:
+            self._regime_check(clean & np.isfinite(y) & np.isfinite(y_frozen), ev)
+            self.regime_left[desync] = -1  # a recovery owns the forgetting now
         self._set_directional(desync, False)
         self._set_directional(resync, True)
         before = self.k
@@ -378,6 +384,28 @@ class FleetUpdater:
             Rn[clamp] *= (tr[clamp] / self.max_trace)[:, None, None]
             Rn[reset] = np.eye(self.n_params) / self.delta
             self.R[rows[dr]] = Rn[dr]
+
+    def enter_new_regime(self) -> None:
+        """Every asset enters a new regime (the closed loop's start), as
+        :meth:`Updater.enter_new_regime <kautztwin.twin.update.Updater.enter_new_regime>`:
+        exponential forgetting until a window of the regime's own samples fits at the
+        resync level, a desync or a new model version."""
+        if self.directional:
+            self._set_directional(np.arange(self.regime_left.size), False)
+            self.regime_left[:] = self.monitor.window
+
+    def _regime_check(self, monitored: NDArray[np.bool_], evaluated: NDArray[np.intp]) -> None:
+        """Count the monitored samples of a new regime; directional forgetting again for
+        the assets whose first window of the regime's own samples fits at the resync level."""
+        pending = self.regime_left >= 0
+        if not pending.any():
+            return
+        self.regime_left[pending & monitored] -= 1
+        mon = self.monitor
+        e = evaluated[pending[evaluated] & (self.regime_left[evaluated] <= 0)]
+        back = e[mon.in_sync[e] & (mon.fit[e] >= mon.threshold + mon.resync_margin)]
+        self.regime_left[back] = -1
+        self._set_directional(back, True)
 
     def _set_directional(self, assets: NDArray[np.intp], on: bool) -> None:
         """Directional (``on``) or exponential forgetting for ``assets`` from now on."""
@@ -599,6 +627,7 @@ class FleetUpdater:
         if self.R is not None:
             self.R[i] = np.eye(self.n_params) / self.delta
             self.dir_on[i] = True
+            self.regime_left[i] = -1
         self.phi[i, :n] = state
         self.phi[i, n] = 1.0
         if w is not None:  # the quadratic channel restarts on the window's input
@@ -624,4 +653,4 @@ class FleetUpdater:
             self.B, self.theta_frozen,
             *(() if self.buf_u is None else (self.buf_u,)), self.buf_y, self.n_updates,
             self.rec_on, self.rec_change, self.rec_next,
-            self.rec_attempts, self.model_k, self.core_n, self.dir_on)))
+            self.rec_attempts, self.model_k, self.core_n, self.dir_on, self.regime_left)))

@@ -611,14 +611,19 @@ class DigitalTwin:
             # held: the twin predicts and stores them but neither adapts on them nor judges
             # its fit on them; the monitors' first window is the closed loop's
             live = k >= self._k_cl
-            if k == self._k_cl > self._k_id:
-                for upd in (self.updater, self.static):
-                    if upd is not None:
-                        upd.monitor.clear_window()
-                # the fast path enters the controller's regime with a fresh covariance, as
-                # after a new model version: the closed loop's first windows fit better in
-                # served runs (docs/service.md, "The fast path at the closed loop's start")
-                self.updater.estimator_.reset_covariance()
+            if k == self._k_cl:
+                fresh = self._k_cl > self._k_id
+                if fresh:
+                    for upd in (self.updater, self.static):
+                        if upd is not None:
+                            upd.monitor.clear_window()
+                # the fast path enters the controller's regime: forgetting in every
+                # direction until it fits there (docs/service.md, "The closed loop's start
+                # as a new regime"); a live plant's, which has not adapted on the samples
+                # queued meanwhile, with a fresh covariance too, as after a new model
+                # version: the closed loop's first windows fit better in served runs
+                # (docs/service.md, "The fast path at the closed loop's start")
+                self.updater.enter_new_regime(fresh_covariance=fresh)
             r = _step_updater(self.updater, u, y_raw, t_k, adapt=live, judge=live)
             a["y_pred"][k] = r.y_pred_frozen
             if r.model_update is None:

@@ -158,7 +158,7 @@ class Updater(StepTestPath, AccuratePath):
         quadratic channel's among them, keep their information instead of
         winding up.  From a desynchronisation to the next model version or the
         resync the plant is changing in every direction, and the forgetting is
-        exponential.
+        exponential; so it is after :meth:`enter_new_regime`.
     monitor : SyncMonitor, optional
         The synchronisation monitor; ``SyncMonitor()`` when omitted.
     sanitizer : SampleSanitizer, optional
@@ -498,6 +498,7 @@ class Updater(StepTestPath, AccuratePath):
         self._u_last = self.input_offset
         self._theta_frozen = self.estimator_.parameters_
         self._recovery: dict[str, int] | None = None
+        self._regime_left: int | None = None  # see enter_new_regime
         self._model_k = 0  # sample at which the current model was adopted
         self.events: list[SyncEvent] = []
         self.model_updates: list[ModelUpdate] = []
@@ -667,7 +668,10 @@ class Updater(StepTestPath, AccuratePath):
             else:
                 est.advance(uf)
             if self.monitoring:
+                n_fits = self.monitor.n_fits
                 events = self.monitor.update(yf, y_frozen, k=k, t=tf)
+                if self._regime_left is not None and math.isfinite(yf + y_frozen):
+                    self._regime_check(self.monitor.n_fits > n_fits)
         else:
             self._counts["skipped"] += 1
             est.advance(uf)
@@ -696,9 +700,50 @@ class Updater(StepTestPath, AccuratePath):
         est = self.estimator_
         if est.directional and ev.kind in ("desync", "resync"):
             est.set_directional(ev.kind == "resync")
+            self._regime_left = None  # a recovery owns the forgetting now
         self.events.append(ev)
         self._log(ev.kind, ev.message, ev.k, ev.t, ev.payload())
         self._recovery_on_event(ev.kind)
+
+    def enter_new_regime(self, *, fresh_covariance: bool = False) -> None:
+        """The plant enters a regime the fast path has not seen: forget in every direction.
+
+        Called at the closed loop's start, when the controller moves the plant
+        away from the identification's operating region.  With directional
+        forgetting (``directional_forgetting=True``) the fast path remembers
+        the old regime along every direction the new one does not excite; so
+        the forgetting is exponential from now on, as after a ``desync``, until
+        the first monitor window made only of samples after this call fits at
+        the resync level (``threshold + resync_margin``), a ``desync`` (its
+        recovery then owns the forgetting) or a new model version.  Served
+        runs replayed and offline runs measured it (docs/service.md, "The
+        closed loop's start as a new regime").
+
+        Parameters
+        ----------
+        fresh_covariance : bool, default=False
+            Also restart the covariance at ``delta * I``.
+        """
+        est = self.estimator_
+        if fresh_covariance:
+            est.reset_covariance()
+        if est.directional:
+            est.set_directional(False)
+            self._regime_left = self.monitor.window
+
+    def _regime_check(self, evaluated: bool) -> None:
+        """One more monitored sample of a new regime; back to directional forgetting once
+        a window of the regime's own samples fits at the resync level."""
+        left = self._regime_left
+        if left is None:
+            return
+        self._regime_left = left = left - 1
+        mon = self.monitor
+        if left <= 0 and evaluated and mon.in_sync and (
+            mon.fit >= mon.threshold + mon.resync_margin
+        ):
+            self.estimator_.set_directional(True)
+            self._regime_left = None
 
     def revise_last_input(self, u: float) -> None:
         """The plant applied ``u`` over the last sample's period, not the input :meth:`step` got.
@@ -749,6 +794,7 @@ class Updater(StepTestPath, AccuratePath):
             xq = filter_states(wide.basis, est.quadratic_input(u_in))[-1]
             state = np.concatenate([state, xq])
         est.reseed(wide, offset=offset, state=state, delta=self.delta)
+        self._regime_left = None  # the reseed returns to the forgetting mode of the parameter
         self._theta_frozen = self.estimator_.parameters_
         self.monitor.clear_window()
         self._model_k = self._k

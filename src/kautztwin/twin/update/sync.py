@@ -254,6 +254,11 @@ class SyncMonitor:
         return ()
 
     @property
+    def n_fits(self) -> int:
+        """Number of window fits computed so far."""
+        return len(self._fits)
+
+    @property
     def history(self) -> FitHistory:
         """All window fits so far.
 
