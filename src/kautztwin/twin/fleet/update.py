@@ -400,7 +400,8 @@ class FleetUpdater:
         pending = self.regime_left >= 0
         if not pending.any():
             return
-        self.regime_left[pending & monitored] -= 1
+        count = pending & monitored & (self.regime_left > 0)  # 0: waiting for a good window
+        self.regime_left[count] -= 1
         mon = self.monitor
         e = evaluated[pending[evaluated] & (self.regime_left[evaluated] <= 0)]
         back = e[mon.in_sync[e] & (mon.fit[e] >= mon.threshold + mon.resync_margin)]

@@ -737,7 +737,7 @@ class Updater(StepTestPath, AccuratePath):
         left = self._regime_left
         if left is None:
             return
-        self._regime_left = left = left - 1
+        self._regime_left = left = max(left - 1, 0)  # 0: waiting for a good window
         mon = self.monitor
         if left <= 0 and evaluated and mon.in_sync and (
             mon.fit >= mon.threshold + mon.resync_margin
