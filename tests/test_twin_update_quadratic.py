@@ -286,12 +286,19 @@ def _regime_updater(**kw) -> Updater:
                                        resync_margin=1.0), **kw)
 
 
-def test_a_new_regime_forgets_exponentially_until_a_window_of_its_own_fits():
-    u = _levels(900, seed=14)
-    y = _hammerstein(u, C, CQ, D)  # the model's regime: every window fits (100 % in the end)
-    upd = _regime_updater()
-    for k in range(300):
+def _stepped(n: int, n_steps: int, seed: int, **kw) -> tuple[Updater, np.ndarray, np.ndarray]:
+    """An updater of :func:`_regime_updater` stepped over the first ``n_steps`` of ``n``
+    samples of the Hammerstein system (the model's own regime: every window fits)."""
+    u = _levels(n, seed=seed)
+    y = _hammerstein(u, C, CQ, D)
+    upd = _regime_updater(**kw)
+    for k in range(n_steps):
         upd.step(u[k], y[k])
+    return upd, u, y
+
+
+def test_a_new_regime_forgets_exponentially_until_a_window_of_its_own_fits():
+    upd, u, y = _stepped(900, 300, seed=14)
     fits_before = upd.monitor.n_fits
     assert upd.estimator_.directional_ and fits_before > 0 and upd.monitor.fit >= 96.0
     upd.enter_new_regime()
@@ -336,16 +343,10 @@ def test_a_new_regime_that_does_not_fit_stays_exponential_and_a_desync_takes_it_
 
 
 def test_a_new_regime_with_a_fresh_covariance_and_without_directional_forgetting():
-    u = _levels(300, seed=16)
-    y = _hammerstein(u, C, CQ, D)
-    upd = _regime_updater()
-    for k in range(300):
-        upd.step(u[k], y[k])
+    upd, _, _ = _stepped(300, 300, seed=16)
     upd.enter_new_regime(fresh_covariance=True)
     np.testing.assert_array_equal(upd.estimator_.covariance_, upd.delta * np.eye(5))
-    plain = _regime_updater(directional_forgetting=False)
-    for k in range(300):
-        plain.step(u[k], y[k])
+    plain, _, _ = _stepped(300, 300, seed=16, directional_forgetting=False)
     before = plain.estimator_.covariance_
     plain.enter_new_regime()  # exponential forgetting already: nothing to change
     assert not plain.estimator_.directional_ and plain._regime_left is None
@@ -355,11 +356,7 @@ def test_a_new_regime_with_a_fresh_covariance_and_without_directional_forgetting
 
 
 def test_a_new_version_ends_a_new_regime():
-    u = _levels(400, seed=17)
-    y = _hammerstein(u, C, CQ, D)
-    upd = _regime_updater()
-    for k in range(200):
-        upd.step(u[k], y[k])
+    upd, u, y = _stepped(400, 200, seed=17)
     upd.enter_new_regime()
     for k in range(200, 230):
         upd.step(u[k], y[k])
