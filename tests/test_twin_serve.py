@@ -406,7 +406,8 @@ def test_end_to_end_sync_fit_after_each_recovery_window(tmp_path):
     window after the first recovery window a median 0.5 points higher); with the closed
     loop's start as a new regime (``Updater.enter_new_regime``), 21 of 24 against 23 of 24
     interleaved, the arms' data differing: replayed through both trees, the same 48 runs
-    had their lowest window before the first drift raised in 42 and lowered in 6.
+    had their lowest window before the first drift raised in 42 and lowered in 6; then 28
+    of 30 (both misses after the first recovery window), 49 of 54 in all.
     docs/service.md has the figures.  ``-s`` prints them.
     """
     metrics, segments, figures = _end_to_end_run(tmp_path)

@@ -386,17 +386,22 @@ class FleetUpdater:
             self.R[rows[dr]] = Rn[dr]
 
     def enter_new_regime(self) -> None:
-        """Every asset enters a new regime (the closed loop's start), as
-        :meth:`Updater.enter_new_regime <kautztwin.twin.update.Updater.enter_new_regime>`:
+        """Every asset enters a new regime: the closed loop's start.
+
+        As :meth:`Updater.enter_new_regime <kautztwin.twin.update.Updater.enter_new_regime>`:
         exponential forgetting until a window of the regime's own samples fits at the
-        resync level, a desync or a new model version."""
+        resync level, a desync or a new model version.
+        """
         if self.directional:
             self._set_directional(np.arange(self.regime_left.size), False)
             self.regime_left[:] = self.monitor.window
 
     def _regime_check(self, monitored: NDArray[np.bool_], evaluated: NDArray[np.intp]) -> None:
-        """Count the monitored samples of a new regime; directional forgetting again for
-        the assets whose first window of the regime's own samples fits at the resync level."""
+        """Count a new regime's monitored samples; end it where a window of them fits.
+
+        The assets whose window of the regime's own samples fits at the resync level
+        go back to directional forgetting.
+        """
         pending = self.regime_left >= 0
         if not pending.any():
             return

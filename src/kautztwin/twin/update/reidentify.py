@@ -732,8 +732,11 @@ class Updater(StepTestPath, AccuratePath):
             self._regime_left = self.monitor.window
 
     def _regime_check(self, evaluated: bool) -> None:
-        """One more monitored sample of a new regime; back to directional forgetting once
-        a window of the regime's own samples fits at the resync level."""
+        """Count a new regime's monitored sample; end the regime where a window of them fits.
+
+        Back to directional forgetting once a window of the regime's own samples
+        fits at the resync level.
+        """
         left = self._regime_left
         if left is None:
             return
