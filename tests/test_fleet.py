@@ -46,14 +46,14 @@ def _config(duration: float, seed: int = 0) -> TwinConfig:
                                 retune=False, seed=seed)
 
 
-def _compare(n_assets: int, duration: float, first: int = 0) -> None:
-    ids = range(first, first + n_assets)  # asset i of the fleet is _plant(first + i)
+def _compare(n_assets: int, duration: float, start: int = 0) -> None:
+    ids = range(start, start + n_assets)  # asset i of the fleet is _plant(start + i)
     seeds = [100 + j for j in ids]
     fleet = Fleet(LoopedFleetPlant([_plant(j) for j in ids]), _config(duration), seeds=seeds)
     fr = fleet.run(progress=False)
     window = _config(duration).monitor_window
     for i in range(n_assets):
-        with DigitalTwin(_plant(first + i), _config(duration, seeds[i])) as tw:
+        with DigitalTwin(_plant(start + i), _config(duration, seeds[i])) as tw:
             run = tw.run(progress=False)
             fits = tw.updater.monitor.history
         np.testing.assert_array_equal(fr.arrays["version"][i], run.arrays["version"])
@@ -97,7 +97,7 @@ def test_same_numbers_one_drifting_asset_whose_closed_loop_start_fits_below_the_
     # asset 3 of the fifty: the first window of its closed loop's own samples does not reach
     # the resync level, so the new regime's exponential forgetting waits for a later one (a
     # fleet that stopped waiting there diverged from the twin: caught by the fifty assets)
-    _compare(1, 20.0, first=3)
+    _compare(1, 20.0, start=3)
 
 
 @pytest.mark.slow
