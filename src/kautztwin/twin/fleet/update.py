@@ -309,7 +309,7 @@ class FleetUpdater:
         self.buf_n = min(self.buf_n + 1, self.L)
         ev, desync, resync, _ = self.monitor.update(y, y_frozen, clean)
         if self.directional:
-            self._regime_check(clean & np.isfinite(y) & np.isfinite(y_frozen), ev)
+            self._regime_check(clean, y, y_frozen, ev)
             self.regime_left[desync] = -1  # a recovery owns the forgetting now
         self._set_directional(desync, False)
         self._set_directional(resync, True)
@@ -396,7 +396,8 @@ class FleetUpdater:
             self._set_directional(np.arange(self.regime_left.size), False)
             self.regime_left[:] = self.monitor.window
 
-    def _regime_check(self, monitored: NDArray[np.bool_], evaluated: NDArray[np.intp]) -> None:
+    def _regime_check(self, clean: NDArray[np.bool_], y: NDArray[np.float64],
+                      y_frozen: NDArray[np.float64], evaluated: NDArray[np.intp]) -> None:
         """Count a new regime's monitored samples; end it where a window of them fits.
 
         The assets whose window of the regime's own samples fits at the resync level
@@ -405,6 +406,7 @@ class FleetUpdater:
         pending = self.regime_left >= 0
         if not pending.any():
             return
+        monitored = clean & np.isfinite(y) & np.isfinite(y_frozen)  # the pairs it took
         count = pending & monitored & (self.regime_left > 0)  # 0: waiting for a good window
         self.regime_left[count] -= 1
         mon = self.monitor

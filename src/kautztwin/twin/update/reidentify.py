@@ -668,9 +668,10 @@ class Updater(StepTestPath, AccuratePath):
             else:
                 est.advance(uf)
             if self.monitoring:
-                n_fits = self.monitor.n_fits
+                regime = self._regime_left is not None  # rare: after enter_new_regime
+                n_fits = self.monitor.n_fits if regime else 0
                 events = self.monitor.update(yf, y_frozen, k=k, t=tf)
-                if self._regime_left is not None and math.isfinite(yf + y_frozen):
+                if regime and math.isfinite(yf + y_frozen):
                     self._regime_check(self.monitor.n_fits > n_fits)
         else:
             self._counts["skipped"] += 1
