@@ -256,13 +256,16 @@ def _pole_retune_figures(store: Path) -> str:
             f"x10); worker compute max {max(work, default=0.0):.3f} s")
 
 
-def _windows_after_recovery(store: Path, offset: float, k0: int) -> list[list[float]]:
+def _windows_after_recovery(
+    store: Path, offset: float, k0: int
+) -> tuple[list[list[float]], list[list[float]]]:
     """Rolling sync fits (the report's windows) after each drift event's recovery window.
 
     The windows start at the closed-loop start ``k0``, as the report's do (a live twin
     starts it once it has caught up with the samples queued while it identified).
     Segment ``i``: windows ending after event ``i`` + the recovery window and before
-    event ``i + 1``; segment 0 is the closed loop before the first event.
+    event ``i + 1``; segment 0 is the closed loop before the first event.  Returns the
+    fits per segment and the plant times at which their windows end.
     """
     from kautztwin.twin.report import rolling_fit
 
@@ -276,8 +279,8 @@ def _windows_after_recovery(store: Path, offset: float, k0: int) -> list[list[fl
     t_end = m.t[ends - 1] + offset  # on the plant's clock
     bounds = [-np.inf, *[e + E2E_RECOVERY for e in E2E_EVENTS]]
     limits = [*E2E_EVENTS, np.inf]
-    return [fits[(t_end > lo) & (t_end <= hi)].tolist() for lo, hi in zip(bounds, limits,
-                                                                            strict=True)]
+    masks = [(t_end > lo) & (t_end <= hi) for lo, hi in zip(bounds, limits, strict=True)]
+    return [fits[s].tolist() for s in masks], [t_end[s].tolist() for s in masks]
 
 
 def _end_to_end_run(tmp_path: Path) -> tuple[dict, list[list[float]], str]:
@@ -344,7 +347,9 @@ def _end_to_end_run(tmp_path: Path) -> tuple[dict, list[list[float]], str]:
     assert n == stop["n_samples"] and n * 0.02 >= 60.0  # >= 60 s of plant time
     metrics = json.loads((out / "metrics.json").read_text())
     k0 = int(round(metrics["closed_loop_start_s"] / metrics["dt"]))
-    segments = _windows_after_recovery(store, offset, k0)
+    segments, ends = _windows_after_recovery(store, offset, k0)
+    lowest_at = [round(e[int(np.argmin(f))], 1) if f else None
+                 for f, e in zip(segments, ends, strict=True)]
     ident = metrics["identification"]
     figures = (f"speed x{speed:g} (the server ran at x{served_speed:.1f}): {n} samples in "
                f"{stop['wall_s']:.1f} s wall "
@@ -354,7 +359,8 @@ def _end_to_end_run(tmp_path: Path) -> tuple[dict, list[list[float]], str]:
                f"drift at {E2E_EVENTS}; re-identifications "
                f"{metrics['reidentifications']}; rolling sync fit min before the first drift "
                f"{min(segments[0], default=float('nan')):.2f} %, after each recovery window "
-               f"{[round(min(f), 2) if f else None for f in segments[1:]]} %, mean "
+               f"{[round(min(f), 2) if f else None for f in segments[1:]]} % (each segment's "
+               f"lowest window ends at {lowest_at} s of plant time), mean "
                f"{metrics['sync_fit_mean']:.2f} %; constraint violations "
                f"{metrics['constraint_violations']} (max {metrics['max_violation']:.3g}); "
                f"samples {metrics['samples']}")
