@@ -409,3 +409,30 @@ def test_negative_time_on_discrete_basis_raises():
     basis = kt.LaguerreBasis(pole=0.5, n=2, dt=0.1)
     with pytest.raises(DataError, match=r"t\[0\] = -0\.1 is negative"):
         basis.evaluate([-0.1, 0.0])
+
+
+@pytest.mark.parametrize("n", [1, 2, 7, 64, 1000])
+def test_power_columns_by_doubling_equal_the_one_step_recursion(n):
+    """``A^k B`` by doubling against the one-step recursion in extended precision.
+
+    A discrete Kautz cascade (real poles at 0.99 and 0.95, a pair at 0.9 +- 0.3j): its
+    ``A`` has norm <= 1 and powers that decay slowly.  The reference runs ``x <- A x`` in
+    ``np.longdouble`` (64-bit mantissa on x86; 53 elsewhere, then the bound is the one-step
+    recursion's own rounding).  Tolerance: about ``2 log2(n)`` products in double, each
+    with ~N eps relative rounding: 1e-13 of ``max |A^k B|`` is 10x that at n = 1000.
+    """
+    from kautztwin.basis._blocks import discrete_matrices, parse_poles
+    from kautztwin.basis._propagate import _power_columns, discrete_functions
+
+    kinds, params = parse_poles(np.array([0.99, 0.95, 0.9 + 0.3j, 0.9 - 0.3j]), 1.0)
+    A, B = discrete_matrices(kinds, params[None])
+    ref = np.empty((B.shape[1], n), dtype=np.longdouble)
+    x = B[0].astype(np.longdouble)
+    Al = A[0].astype(np.longdouble)
+    for k in range(n):
+        ref[:, k] = x
+        x = Al @ x
+    got = _power_columns(A, B, n)[0]
+    np.testing.assert_allclose(got, ref.astype(float), rtol=0, atol=1e-13 * np.abs(ref).max())
+    k = np.array([n - 1, 0, n // 2])
+    np.testing.assert_array_equal(discrete_functions(A, B, k)[0], got[:, k])

@@ -4,7 +4,8 @@ The script must run and time the fast path: its recursion must give the coeffici
 the weighted least-squares fit over the forgetting factor's memory, to what the window
 leaves out (the weights beyond 3 / (1 - forgetting) samples, about 5 % of the first one,
 and the initial covariance; measured 5e-4 of the largest coefficient).  It must time every
-captured re-identification window with both regressor implementations, and both must give
+captured re-identification window with both fits (the starts searched together and one
+after another), and both must give
 the same candidate to the fit's resolution: the
 held-out predictions within 1e-4 of the output's spread (the output-error cost is flat
 along some pole directions, so rounding differences move the poles by up to about 1e-4;

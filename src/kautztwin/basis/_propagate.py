@@ -3,7 +3,10 @@
 No ODE solver and no eigendecomposition (the Laguerre ``A`` is a single Jordan
 block): uniform grids use the exact one-step recursion ``F(t + h) = e^{Ah} F(t)``
 arranged in sqrt(n) blocks (so rounding accumulates over about ``2 sqrt(n)``
-steps, not ``n``); other grids use one matrix exponential per sample.
+steps, not ``n``); discrete grids take all ``A^k B`` by doubling (``A^j`` times
+the first ``j`` columns, ``j = 1, 2, 4, ...``: about ``2 log2(n)`` batched
+products, and rounding accumulated over as many); other grids use one matrix
+exponential per sample.
 """
 
 from __future__ import annotations
@@ -15,6 +18,27 @@ from numpy.typing import NDArray
 from ..exceptions import DataError
 
 _UNIFORM_RTOL = 1e-12
+
+
+def _power_columns(step: NDArray, first: NDArray, m: int) -> NDArray[np.float64]:
+    """Columns ``step^k first`` for ``k < m`` by doubling: ``(b, N) -> (b, N, m)``.
+
+    Columns ``[j, 2j)`` are ``step^j`` times columns ``[0, j)``, with ``step^j``
+    from repeated squaring: about ``2 log2(m)`` batched products instead of ``m``
+    one-column steps, and rounding accumulated over as many products.
+    """
+    batch, size = first.shape
+    out = np.empty((batch, size, m))
+    out[:, :, 0] = first
+    power = step  # step^filled
+    filled = 1
+    while filled < m:
+        take = min(filled, m - filled)
+        out[:, :, filled: filled + take] = power @ out[:, :, :take]
+        filled += take
+        if filled < m:
+            power = power @ power
+    return out
 
 
 def _blocked_recursion(
@@ -97,9 +121,7 @@ def _near_uniform(A: NDArray, B: NDArray, t: NDArray) -> NDArray[np.float64] | N
 
 def discrete_functions(A: NDArray, B: NDArray, k: NDArray) -> NDArray[np.float64]:
     """``A^k B`` for integer ``k >= 0``; shapes ``(b,N,N), (b,N) -> (b,N,len(k))``."""
-    n = int(k.max()) + 1
-    m = max(1, int(np.ceil(np.sqrt(n))))
-    table = _blocked_recursion(A, np.linalg.matrix_power(A, m), B, n, m)
+    table = _power_columns(A, B, int(k.max()) + 1)
     return table[:, :, k]
 
 

@@ -128,11 +128,12 @@ class OutputErrorFit:
     fit_percent : float
         Simulation fit on the samples used (after the burn-in), percent.
     n_evaluations : int
-        Residual evaluations over all starts (the Jacobians evaluate no residual).
+        Residual evaluations (each evaluates every start, in one batch; the
+        Jacobians evaluate no residual).
     success : bool
-        Whether the best start met its tolerance.
+        Whether the search (of all starts together) met its tolerance.
     message : str
-        The solver's message for the best start.
+        The solver's message.
     """
 
     model: KautzModel
@@ -168,15 +169,23 @@ class _OEProblem:
     re-identification fits on a worse optimum).  A Jacobian costs one batched evaluation
     of the perturbed basis sequences and one convolution instead of a residual evaluation
     per searched parameter.
+
+    **Several starts as one problem.**  With ``n_starts`` > 1 the search vector holds one
+    start's coordinates after another and the residual their residuals one after another:
+    the starts do not interact (the Jacobian is block diagonal), so the joint minimum is
+    every start's own minimum, and each step evaluates all starts in one batch (the basis
+    sequences, the convolutions and the factorizations), which costs little more than one
+    start: the evaluation is dominated by per-call overhead, not arithmetic.
     """
 
     def __init__(
         self, kinds: tuple[str, ...], u: NDArray, y: NDArray, dt: float, burn_in: int,
-        fit_offset: bool, initial_state: bool = False,
+        fit_offset: bool, initial_state: bool = False, n_starts: int = 1,
     ) -> None:
         self.kinds = kinds
         self.u = u
         self.dt = dt
+        self.n_starts = n_starts
         self._grid = np.arange(u.size + 1)
         self._spectrum = _InputSpectrum(u)
         use = np.isfinite(y)
@@ -188,7 +197,7 @@ class _OEProblem:
         self.initial_state = initial_state
         self.n_eval = 0
         self.upper: NDArray | None = None  # search bounds: a difference step stays inside
-        self._last: tuple[NDArray, NDArray, NDArray, NDArray] | None = None
+        self._last: tuple | None = None
 
     def block_params(self, xs: NDArray) -> NDArray[np.float64]:
         """z-plane block parameters of search points ``xs`` (one point per row)."""
@@ -241,26 +250,47 @@ class _OEProblem:
         out = np.concatenate(cols, axis=2)[:, self.use]
         return out[0] if F.ndim == 2 else out
 
-    def basis(self, x: NDArray) -> KautzBasis:
-        return KautzBasis._from_blocks(self.kinds, self.block_params(x)[0], self.dt, True)
+    def _fit(self, x: NDArray) -> tuple[NDArray, ...]:
+        """``(F, X, theta, r, U, s, Vt)`` of every start at ``x``, kept for the Jacobian there.
 
-    def _fit(self, x: NDArray) -> tuple[NDArray, NDArray, NDArray]:
-        """``(F, X, theta)`` at ``x``, kept for the Jacobian at the same point."""
+        ``theta`` is the minimum-norm least-squares solution by the SVD of ``X`` with
+        lstsq's rank rule (``rcond=None``); ``U, s, Vt`` are the SVD's factors of the kept
+        rank, one per start (lists), ``r`` the residuals ``(n_starts, n_used)``.
+        """
         if self._last is None or not np.array_equal(self._last[0], x):
             self.n_eval += 1
-            F = self.sequences(x)[0]
+            F = self.sequences(np.reshape(x, (self.n_starts, -1)))
             X = self._columns(F)
-            theta, *_ = np.linalg.lstsq(X, self.y, rcond=None)
-            self._last = (np.array(x, dtype=float), F, X, theta)
+            Us, Ss, Vts = [], [], []
+            theta = np.empty((self.n_starts, X.shape[2]))
+            factors = np.linalg.svd(X, full_matrices=False)
+            for i, (U, s, Vt) in enumerate(zip(*factors, strict=True)):
+                keep = s > s[0] * max(X.shape[1:]) * np.finfo(float).eps
+                U, s, Vt = U[:, keep], s[keep], Vt[keep]
+                theta[i] = Vt.T @ ((U.T @ self.y) / s)
+                Us.append(U)
+                Ss.append(s)
+                Vts.append(Vt)
+            r = self.y - np.einsum("skj,sj->sk", X, theta)
+            self._last = (np.array(x, dtype=float), F, X, theta, r, Us, Ss, Vts)
         return self._last[1:]
 
-    def solve(self, x: NDArray) -> tuple[KautzBasis, NDArray, NDArray]:
-        _, X, theta = self._fit(x)
-        return self.basis(x), theta, self.y - X @ theta
+    def costs(self, x: NDArray) -> NDArray[np.float64]:
+        """Sum of squared residuals of every start at ``x``."""
+        r = self._fit(x)[3]
+        return np.einsum("sk,sk->s", r, r)
+
+    def basis(self, x: NDArray, start: int = 0) -> KautzBasis:
+        row = np.reshape(x, (self.n_starts, -1))[start]
+        return KautzBasis._from_blocks(self.kinds, self.block_params(row)[0], self.dt, True)
+
+    def solve(self, x: NDArray, start: int = 0) -> tuple[KautzBasis, NDArray, NDArray]:
+        """Basis, ``theta`` and fitted values (on the used samples) of one start at ``x``."""
+        _, X, theta, *_ = self._fit(x)
+        return self.basis(x, start), theta[start], X[start] @ theta[start]
 
     def residual(self, x: NDArray) -> NDArray:
-        _, X, theta = self._fit(x)
-        return self.y - X @ theta
+        return self._fit(x)[3].ravel()
 
     def jacobian(self, x: NDArray) -> NDArray[np.float64]:
         r"""Jacobian of :meth:`residual` (Golub & Pereyra's variable-projection formula).
@@ -271,23 +301,31 @@ class _OEProblem:
         own change with :math:`x` is in it).  The derivatives of the basis sequences
         are forward differences in the search coordinates (step
         :math:`\sqrt{\epsilon}\max(1, |x_j|)`, as scipy's ``'2-point'``, backwards at
-        the upper bound), all of them from one batched recursion; no residual is
-        evaluated again, which is what a difference Jacobian of the residual costs
-        per searched parameter.
+        the upper bound), all of them, for every start, from one batched recursion; no
+        residual is evaluated again, which is what a difference Jacobian of the residual
+        costs per searched parameter.  Several starts give a block-diagonal Jacobian.
         """
-        F, X, theta = self._fit(x)
-        r = self.y - X @ theta
-        step = _FD_STEP * np.maximum(1.0, np.abs(x))
+        F, X, theta, r, Us, Ss, Vts = self._fit(x)
+        n_s = self.n_starts
+        xs = np.reshape(x, (n_s, -1))
+        n_x = xs.shape[1]
+        step = _FD_STEP * np.maximum(1.0, np.abs(xs))
         if self.upper is not None:
-            step = np.where(x + step > self.upper, -step, step)
-        dF = (self.sequences(x + np.diag(step)) - F) / step[:, None, None]  # (n_x, n_f, n + 1)
-        U, s, Vt = np.linalg.svd(X, full_matrices=False)
-        keep = s > s[0] * max(X.shape) * np.finfo(float).eps  # lstsq's rank (rcond=None)
-        U, s, Vt = U[:, keep], s[keep], Vt[keep]
-        dX = self._columns(dF, constant=0.0)  # (n_x, n_used, n_theta)
-        a = (dX @ theta).T  # column j: X_j theta
-        g = np.einsum("jkp,k->pj", dX, r)  # column j: X_j^T r
-        return U @ (U.T @ a) - a - U @ ((Vt @ g) / s[:, None])
+            step = np.where(xs + step > self.upper, -step, step)
+        points = (xs[:, None, :] + step[:, :, None] * np.eye(n_x)).reshape(n_s * n_x, n_x)
+        dF = self.sequences(points).reshape(n_s, n_x, *F.shape[1:])
+        dF = (dF - F[:, None]) / step[:, :, None, None]  # (n_s, n_x, n_f, n + 1)
+        dX = self._columns(dF.reshape(n_s * n_x, *F.shape[1:]), constant=0.0)
+        dX = dX.reshape(n_s, n_x, *X.shape[1:])  # (n_s, n_x, n_used, n_theta)
+        n_used = X.shape[1]
+        J = np.zeros((n_s * n_used, n_s * n_x))
+        for i, (U, s, Vt) in enumerate(zip(Us, Ss, Vts, strict=True)):
+            a = (dX[i] @ theta[i]).T  # column j: X_j theta
+            g = np.einsum("jkp,k->pj", dX[i], r[i])  # column j: X_j^T r
+            J[i * n_used: (i + 1) * n_used, i * n_x: (i + 1) * n_x] = (
+                U @ (U.T @ a) - a - U @ ((Vt @ g) / s[:, None])
+            )
+        return J
 
 
 def _oe_x(kinds: tuple[str, ...], params: NDArray) -> NDArray:
@@ -349,8 +387,12 @@ def identify_output_error(
         Output; NaN samples are left out.
     init : int, array-like of complex, or KautzBasis
         Starting poles: continuous-time locations (``Re < 0``; their
-        real/pair structure is kept), a basis (continuous, or discrete on
-        ``dt``), or the number of real poles (then several spreads are tried).
+        real/pair structure is kept), a 2-D array of them (one start per
+        row, all of one structure), a basis (continuous, or discrete on
+        ``dt``), or the number of real poles (then two spreads are tried).
+        Several starts are searched together, as one problem whose residual
+        is theirs one after another (one batched evaluation of all starts per
+        step); the start that ends with the smallest error is returned.
     dt : float
         Sampling period, s.
     burn_in : int, default=0
@@ -366,7 +408,8 @@ def identify_output_error(
         tends to spend a pole on it, which predicts badly once the plant
         changes.  The fastest rate is ``10 / dt``.
     max_iter : int, default=50
-        Iteration budget per start.
+        Iteration budget: at most ``max_iter * (m + 1)`` evaluations, ``m``
+        the number of searched coordinates of one start.
     tol : float, default=1e-8
         ``ftol``/``xtol``/``gtol`` of the solver.
     initial_state : {'zero', 'estimate'}, default='zero'
@@ -438,7 +481,16 @@ def identify_output_error(
             rates = centre * spread ** (np.linspace(-0.5, 0.5, m) if m > 1 else np.zeros(1))
             starts.append(((REAL,) * m, np.sort(rates)))
     else:
-        starts = [parse_poles(init, 0.0)]
+        try:
+            rows = np.asarray(init) if np.ndim(init) == 2 else [init]
+        except ValueError:  # ragged: parse_poles says what is wrong
+            rows = [init]
+        starts = [parse_poles(row, 0.0) for row in rows]
+        if any(kinds != starts[0][0] for kinds, _ in starts):
+            raise DataError(
+                "the starts in init (its rows) must share one structure: the same number "
+                "of real poles and complex pairs, in one order"
+            )
     initial_state = check_choice(initial_state, "initial_state", ("zero", "estimate"))
     estimate_x0 = initial_state == "estimate"
     n_par = starts[0][1].size * (2 if estimate_x0 else 1) + int(bool(fit_offset))
@@ -447,33 +499,31 @@ def identify_output_error(
         raise DataError(
             f"{usable} usable samples after the burn-in are too few to fit {n_par} parameters"
         )
-    best = None
-    n_eval = 0
-    for kinds, params in starts:
-        prob = _OEProblem(kinds, u, y, dt, burn_in, bool(fit_offset), estimate_x0)
-        lo_b, hi_b = _oe_bounds(kinds, n, dt, rate_lo)
-        prob.upper = hi_b
-        x0 = np.clip(_oe_x(kinds, params), lo_b + 1e-6 * (hi_b - lo_b), hi_b - 1e-6 * (hi_b - lo_b))
-        sol = scipy.optimize.least_squares(
-            prob.residual, x0, jac=prob.jacobian, bounds=(lo_b, hi_b), method="trf",
-            x_scale="jac",
-            ftol=tol, xtol=tol, gtol=tol, max_nfev=max_iter * (x0.size + 1),
-        )
-        n_eval += prob.n_eval
-        if best is None or sol.cost < best[0].cost:
-            best = (sol, prob)
-    sol, prob = best
-    basis, theta, _ = prob.solve(sol.x)
+    kinds = starts[0][0]
+    n_starts = len(starts)
+    prob = _OEProblem(kinds, u, y, dt, burn_in, bool(fit_offset), estimate_x0, n_starts)
+    lo_b, hi_b = _oe_bounds(kinds, n, dt, rate_lo)
+    prob.upper = hi_b
+    inside = (lo_b + 1e-6 * (hi_b - lo_b), hi_b - 1e-6 * (hi_b - lo_b))
+    x0 = np.concatenate([np.clip(_oe_x(kinds, params), *inside) for _, params in starts])
+    sol = scipy.optimize.least_squares(
+        prob.residual, x0, jac=prob.jacobian, bounds=(np.tile(lo_b, n_starts),
+                                                     np.tile(hi_b, n_starts)),
+        method="trf", x_scale="jac",
+        ftol=tol, xtol=tol, gtol=tol, max_nfev=max_iter * (lo_b.size + 1),
+    )
+    best = int(np.argmin(prob.costs(sol.x)))  # the first of equals, as one start after another
+    basis, theta, fitted = prob.solve(sol.x, best)
     n_f = basis.n_functions
     offset = float(theta[-1]) if fit_offset else 0.0
     model = KautzModel(basis, theta[:n_f])
     if estimate_x0:
-        yhat = prob._fit(sol.x)[1] @ theta
+        yhat = fitted
     else:
         yhat = (filter_states(basis, u)[:-1] @ theta[:n_f] + offset)[prob.use]
     return OutputErrorFit(
         model=model, offset=offset, input_offset=u0, fit_percent=fit_percent_or_nan(prob.y, yhat),
-        n_evaluations=n_eval,
+        n_evaluations=prob.n_eval,
         success=bool(sol.success), message=str(sol.message),
     )
 

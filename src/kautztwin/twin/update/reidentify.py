@@ -330,8 +330,8 @@ class Updater(StepTestPath, AccuratePath):
     one attempt is in flight: a due attempt waits until the previous one has
     been judged.  A ``'resync'`` event, another accepted model (e.g.
     :meth:`update_from_step_test`) or :meth:`cancel_pending` makes the
-    attempt in flight stale: it is cancelled (the worker stops between the
-    fit's starts) and reported as a rejected :class:`ModelUpdate` whose
+    attempt in flight stale: it is cancelled (a fit not yet begun is skipped)
+    and reported as a rejected :class:`ModelUpdate` whose
     reason says why.  A thread is enough: a real-time loop sleeps most of
     each period and gets the GIL back within about the interpreter's switch
     interval (5 ms) when it wakes; measured on a 20 ms loop with the worker

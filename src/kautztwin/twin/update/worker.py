@@ -4,8 +4,8 @@ A re-identification attempt is frozen into a :class:`_ReidJob` (a copy of the
 data window and the current poles); :func:`_fit_window` computes its
 candidate, a pure function of the job.  :class:`_ReidWorker` owns the single
 worker (a thread, or a process) and the attempt in flight (:class:`_Pending`):
-it submits a job, marks it stale (and asks the fit to stop between its starts)
-when the twin moves on, and hands a finished attempt back to the
+it submits a job, marks it stale (a fit that has not begun its search then
+skips it) when the twin moves on, and hands a finished attempt back to the
 :class:`~kautztwin.twin.update.Updater`, which judges it.
 
 **Process worker** (``kind='process'``, ``Updater(worker='process')``): the fit
@@ -15,8 +15,8 @@ link's client), at a lower CPU priority (``nice`` +5), so that it takes neither
 the parent's GIL nor CPU time the sampling loop needs first.  The job and its
 outcome are pickled (numpy arrays, floats, an
 :class:`~kautztwin.ident.kautz_oe.OutputErrorFit`); the result is the same
-function of the job as in a thread.  A stale attempt is not interrupted between
-its starts (its result is dropped as in a thread).  The child is started when
+function of the job as in a thread.  A stale attempt is not interrupted (its
+result is dropped as in a thread).  The child is started when
 the worker is created (:meth:`_ReidWorker.prestart`), so that the first attempt
 does not wait for an interpreter to start.
 """
@@ -46,6 +46,8 @@ from ...ident.kautz_oe import OutputErrorFit, identify_output_error
 
 #: a window starts where the plant may have changed: its state there is estimated
 _INITIAL_STATE = "estimate"
+#: the starts: the current poles' decay rates scaled by these
+_START_SCALES = (1.0, 0.75, 1.33)
 
 
 @dataclass(frozen=True, eq=False)
@@ -83,21 +85,20 @@ def _fit_window(job: _ReidJob, cancel: threading.Event | None = None) -> _ReidOu
     """The accurate path's computation: output error from the current poles and two scalings.
 
     A pure function of ``job`` (it runs in the worker thread in background
-    mode).  ``cancel`` is checked between the starts.
+    mode).  The three starts are searched together (one batched evaluation
+    of all of them per step, :func:`~kautztwin.ident.identify_output_error`);
+    ``cancel``, when set before the search begins, skips it.
     """
     start = time.perf_counter()
-    best: OutputErrorFit | None = None
-    for scale in (1.0, 0.75, 1.33):
-        if cancel is not None and cancel.is_set():
-            return _ReidOutcome(None, time.perf_counter() - start)
-        fit = identify_output_error(
-            job.u[: job.n_est], job.y[: job.n_est], _scaled_poles(job.poles, scale), dt=job.dt,
-            burn_in=job.w0, input_offset=job.input_offset, min_rate=job.min_rate,
-            max_iter=job.max_iter, initial_state=_INITIAL_STATE,
-        )
-        if best is None or fit.fit_percent > best.fit_percent:
-            best = fit
-    return _ReidOutcome(best, time.perf_counter() - start)
+    if cancel is not None and cancel.is_set():
+        return _ReidOutcome(None, time.perf_counter() - start)
+    starts = np.array([_scaled_poles(job.poles, scale) for scale in _START_SCALES])
+    fit = identify_output_error(
+        job.u[: job.n_est], job.y[: job.n_est], starts, dt=job.dt,
+        burn_in=job.w0, input_offset=job.input_offset, min_rate=job.min_rate,
+        max_iter=job.max_iter, initial_state=_INITIAL_STATE,
+    )
+    return _ReidOutcome(fit, time.perf_counter() - start)
 
 
 def portable_model(model: KautzModel) -> tuple[Any, ...]:
