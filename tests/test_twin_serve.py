@@ -416,7 +416,7 @@ def test_end_to_end_sync_fit_after_each_recovery_window(tmp_path):
     of 30 (both misses after the first recovery window), 49 of 54 in all, 78 of 84 with
     a later session's 30; with the output-error fit's starts searched together (fits 1.9x
     faster, the judgement's lag a median 21 samples instead of 37), 20 of 20 against 20
-    of 20 interleaved, then 46 of 46 (66 of 66).
+    of 20 interleaved, then 92 of 92 (112 of 112).
     docs/service.md has the figures.  ``-s`` prints them.
     """
     metrics, segments, figures = _end_to_end_run(tmp_path)
