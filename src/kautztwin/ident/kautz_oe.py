@@ -281,7 +281,9 @@ class _OEProblem:
         return np.einsum("sk,sk->s", r, r)
 
     def basis(self, x: NDArray, start: int = 0) -> KautzBasis:
-        row = np.reshape(x, (self.n_starts, -1))[start]
+        """The basis of one start at ``x`` (its coordinates: one per real pole, two per pair)."""
+        per_start = sum(2 if kind == PAIR else 1 for kind in self.kinds)
+        row = np.reshape(x, (-1, per_start))[start]
         return KautzBasis._from_blocks(self.kinds, self.block_params(row)[0], self.dt, True)
 
     def solve(self, x: NDArray, start: int = 0) -> tuple[KautzBasis, NDArray, NDArray]:

@@ -185,7 +185,6 @@ class _MIMOProblem(_OEProblem):
     ) -> None:
         self.kinds = kinds
         self.dt = dt
-        self.n_starts = 1  # one start per problem (the SISO problem can search several)
         self.reg = reg
         self.use = use
         self.y = y[use]
